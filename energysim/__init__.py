@@ -1,0 +1,38 @@
+"""energysim: differentiable soft-body simulation in PyTorch, where every force is an energy's gradient.
+
+One implicit-Euler step is the minimisation
+x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x) by a pluggable optimizer.
+"""
+
+from energysim.energies import ElementEnergy, EnergyTerm, Gravity, Inertia, NeoHookean, Springs
+from energysim.mesh import SimplexMesh, TetMesh, TriMesh, load_mesh
+from energysim.objective import Objective
+from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
+from energysim.scene import Scene
+from energysim.step import StepResult, solve_static, step, timestep
+
+__all__ = [
+    "LBFGS",
+    "Adam",
+    "ConvergenceError",
+    "ConvergenceWarning",
+    "ElementEnergy",
+    "EnergyTerm",
+    "Gravity",
+    "Inertia",
+    "NeoHookean",
+    "NewtonCG",
+    "Objective",
+    "Scene",
+    "SimplexMesh",
+    "Solver",
+    "SolverResult",
+    "Springs",
+    "StepResult",
+    "TetMesh",
+    "TriMesh",
+    "load_mesh",
+    "solve_static",
+    "step",
+    "timestep",
+]

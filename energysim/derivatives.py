@@ -1,0 +1,181 @@
+"""Every derivative the solvers use comes from here, and from autograd.
+
+Gradients and Hessian-vector products are autograd's. Hessian *blocks* of element energies
+(one dense `[(k·d), (k·d)]` matrix per element) are autograd's too, unless a term supplies a
+closed-form `element_hessian` kernel, which the tests check against autograd. With the blocks
+in hand, a Hessian-vector product is a gather, a batched mat-vec and a scatter-add: far cheaper
+than a double backward through the energy, which is what makes Newton–CG fast.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from energysim.assembly import PATTERNS, assemble
+from energysim.energies.base import ElementEnergy, EnergyTerm
+
+EnergyFn = Callable[[Tensor], Tensor]
+
+
+def energy_and_gradient(energy: EnergyFn, x: Tensor) -> tuple[Tensor, Tensor]:
+    """E(x) and ∇E(x).
+
+    Args:
+        energy: maps positions `[B, n, d]` to energies `[B]` in J.
+        x: positions, shape `[B, n, d]`, in m.
+
+    Returns:
+        energies `[B]` (detached) and gradients `[B, n, d]` in N.
+    """
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        value = energy(x)
+        (gradient,) = torch.autograd.grad(value.sum(), x)
+    return value.detach(), gradient
+
+
+def hessian_vector_product(energy: EnergyFn, x: Tensor, v: Tensor) -> Tensor:
+    """H(x) v by double backward; H is never formed. Shapes as `x`; units N/m × units of `v`."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        (gradient,) = torch.autograd.grad(energy(x).sum(), x, create_graph=True)
+        (product,) = torch.autograd.grad(gradient, x, grad_outputs=v)
+    return product
+
+
+def autograd_element_hessian(term: ElementEnergy, x: Tensor, action: Tensor | None) -> Tensor:
+    """Per-element Hessian blocks of an element energy by autograd, shape `[B, m, k·d, k·d]`.
+
+    Elements are independent, so column j of every block comes from one backward pass of the
+    j-th component of the per-element gradients: k·d passes in all, whatever m is.
+    """
+    with torch.enable_grad():
+        element_positions = x.detach()[:, term.element_vertices].requires_grad_(True)
+        batch, count, corners, dim = element_positions.shape
+        energy = term.element_energy(element_positions, action).sum()
+        (gradient,) = torch.autograd.grad(energy, element_positions, create_graph=True)
+        gradient = gradient.reshape(batch, count, corners * dim)
+        columns = []
+        for j in range(corners * dim):
+            if not gradient.requires_grad:  # the energy is linear in x
+                columns.append(torch.zeros_like(gradient))
+                continue
+            (column,) = torch.autograd.grad(
+                gradient[..., j].sum(), element_positions, retain_graph=True, allow_unused=True
+            )
+            columns.append(torch.zeros_like(gradient) if column is None else column.reshape(batch, count, -1))
+    return torch.stack(columns, dim=-1).detach()
+
+
+def element_hessian(term: ElementEnergy, x: Tensor, action: Tensor | None) -> Tensor:
+    """Per-element Hessian blocks `[B, m, k·d, k·d]`: the term's closed form if it has one, else autograd."""
+    kernel = getattr(term, "element_hessian", None)
+    if kernel is not None:
+        with torch.no_grad():
+            return kernel(x[:, term.element_vertices], action)
+    return autograd_element_hessian(term, x, action)
+
+
+@dataclass
+class HessianOperator:
+    """H = diagonal + Σ element blocks (+ autograd HVPs of other nonlinear terms), on free DOFs only.
+
+    The diagonal and blocks are assembled once into a CSR matrix. Fixed DOFs are eliminated:
+    the operator acts as the identity on them, so a solve leaves them untouched.
+    """
+
+    free: Tensor  # [n] bool
+    diagonal: Tensor | None  # [n] or [B, n], per vertex (isotropic), N/m
+    blocks: list[tuple[Tensor, Tensor]] = field(default_factory=list)  # ([m, k], [B, m, kd, kd])
+    extra_products: list[Callable[[Tensor], Tensor]] = field(default_factory=list)
+    products: int = 0  # Hessian-vector products taken so far
+    _matrix: Tensor | None = None
+
+    def matrix(self, like: Tensor) -> Tensor | None:
+        """The assembled CSR matrix of diagonal + blocks, size B·n·d, or None if there is neither."""
+        if self._matrix is None and (self.blocks or self.diagonal is not None):
+            batch, n, dim = like.shape
+            pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+            diagonal = None
+            if self.diagonal is not None:
+                diagonal = self.diagonal.reshape(-1, n, 1).expand(batch, n, dim)
+            fixed = (~self.free)[None, :, None].expand(batch, n, dim).reshape(-1)
+            self._matrix = assemble(pattern, diagonal, [block for _, block in self.blocks], like.dtype, fixed)
+        return self._matrix
+
+    def matvec(self, v: Tensor) -> Tensor:
+        """H v for `v` of shape `[B, n, d]`."""
+        self.products += 1
+        matrix = self.matrix(v)
+        if not self.extra_products:  # fixed DOFs are already eliminated inside the matrix
+            return (matrix @ v.reshape(-1)).reshape(v.shape)
+        free = self.free[:, None].to(v.dtype)
+        v_free = v * free
+        out = torch.zeros_like(v) if matrix is None else (matrix @ v_free.reshape(-1)).reshape(v.shape)
+        for product in self.extra_products:
+            out = out + product(v_free)
+        return out * free + v * (1 - free)
+
+    def vertex_blocks(self, like: Tensor) -> Tensor:
+        """The d×d diagonal block of H at every vertex, shape `[B, n, d, d]`, for block-Jacobi.
+
+        Products from `extra_products` are not included: they have no cheap diagonal.
+        """
+        batch, n, dim = like.shape
+        eye = torch.eye(dim, dtype=like.dtype, device=like.device)
+        out = like.new_zeros(batch, n, dim, dim)
+        if self.diagonal is not None:
+            out = out + self.diagonal.reshape(-1, n, 1, 1) * eye
+        for element_vertices, block in self.blocks:
+            count, corners = element_vertices.shape
+            local = block.reshape(block.shape[0], count, corners, dim, corners, dim)
+            diagonal = torch.diagonal(local, dim1=2, dim2=4).permute(0, 1, 4, 2, 3)  # [B, m, k, d, d]
+            out = out.index_add(
+                1, element_vertices.reshape(-1), diagonal.reshape(block.shape[0], -1, dim, dim)
+            )
+        return out
+
+
+def hessian_operator(
+    terms: Sequence[EnergyTerm],
+    x: Tensor,
+    action: Tensor | None,
+    free: Tensor,
+    *,
+    use_element_blocks: bool = True,
+) -> HessianOperator:
+    """The Hessian of Σ terms at `x`, as an operator on `[B, n, d]` tensors.
+
+    Args:
+        terms: the objective's energy terms.
+        x: positions, shape `[B, n, d]`, in m.
+        action: the step's action or None.
+        free: which vertices are free, shape `[n]`, bool.
+        use_element_blocks: False takes every product by double backward (the plain reference);
+            True builds per-element blocks once and takes products from them.
+    """
+    diagonal = None
+    blocks: list[tuple[Tensor, Tensor]] = []
+    others: list[EnergyTerm] = []
+    for term in terms:
+        if term.is_linear:
+            continue
+        if hasattr(term, "hessian_diagonal"):
+            diagonal = term.hessian_diagonal() if diagonal is None else diagonal + term.hessian_diagonal()
+        elif use_element_blocks and isinstance(term, ElementEnergy):
+            blocks.append((term.element_vertices, element_hessian(term, x, action)))
+        else:
+            others.append(term)
+    extra = []
+    if others:
+        x_fixed = x.detach()
+
+        def others_energy(y: Tensor) -> Tensor:
+            return sum(term(y, action) for term in others)
+
+        extra.append(lambda v: hessian_vector_product(others_energy, x_fixed, v))
+    return HessianOperator(free=free, diagonal=diagonal, blocks=blocks, extra_products=extra)

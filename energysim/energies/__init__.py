@@ -1,0 +1,9 @@
+"""Energy terms: each a small, pure function of positions (and the action) returning joules."""
+
+from energysim.energies.base import ElementEnergy, EnergyTerm
+from energysim.energies.gravity import Gravity
+from energysim.energies.inertia import Inertia
+from energysim.energies.neo_hookean import NeoHookean
+from energysim.energies.springs import Springs
+
+__all__ = ["ElementEnergy", "EnergyTerm", "Gravity", "Inertia", "NeoHookean", "Springs"]

@@ -1,0 +1,90 @@
+"""The contract every energy term keeps.
+
+A term is a small, pure function of positions: `term(x, action) -> energy`, with `x` of shape
+`[B, n, d]` (a batch of B configurations of n vertices in d = 2 or 3 dimensions) and the energy
+of shape `[B]`, in J. Rest data and material constants are buffers, so `.to(device, dtype)`
+moves them; a constant may require grad. Terms never compute forces: gradients, Hessian-vector
+products and Hessian blocks come from autograd in `energysim.derivatives`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from energysim.mesh import SimplexMesh
+
+
+class EnergyTerm(nn.Module):
+    """Base class of energy terms. Subclasses implement `forward(x, action) -> [B]` in J.
+
+    Class attributes that let solvers skip work:
+        is_linear: the energy is linear in `x`, so its Hessian is zero.
+    """
+
+    is_linear: bool = False
+
+    def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
+        """Build rest-state buffers from the scene's mesh; called once by `Scene.add`.
+
+        Args:
+            mesh: the scene's rest mesh.
+            vertex_mass: lumped vertex masses, shape `[n]`, in kg.
+        """
+
+    def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def max_step(self, x: Tensor, dx: Tensor) -> Tensor | None:
+        """Largest α ≤ 1 such that `x + α dx` is admissible for this term, shape `[B]`; None: no limit.
+
+        The hook the line search starts from (contact terms use it to stay outside obstacles).
+        """
+        return None
+
+
+class ElementEnergy(EnergyTerm):
+    """A sum of energies of small elements, each depending on the positions of its k vertices.
+
+    Subclasses set the buffer `element_vertices` (shape `[m, k]`) in `bind` and implement
+    `element_energy`; that structure lets solvers build per-element Hessian blocks.
+    """
+
+    element_vertices: Tensor
+
+    def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """Energies of every element, shape `[B, m]`, in J.
+
+        Args:
+            element_positions: shape `[B, m, k, d]`, in m.
+            action: the step's action, shape `[B, a]`, or None.
+        """
+        raise NotImplementedError  # pragma: no cover - abstract
+
+    def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
+        return self.element_energy(x[:, self.element_vertices], action).sum(dim=-1)
+
+
+def as_parameter(value: float | Tensor, name: str) -> Tensor:
+    """A float64 tensor from a scalar or a tensor, keeping the tensor (and its grad) when given one."""
+    if isinstance(value, Tensor):
+        if not value.is_floating_point():
+            value = value.to(torch.float64)
+        return value
+    return torch.tensor(float(value), dtype=torch.float64)
+
+
+def check_per_element(value: Tensor, count: int, name: str, what: str) -> None:
+    """Raise unless `value` is a scalar or has shape `[count]`."""
+    if value.ndim != 0 and tuple(value.shape) != (count,):
+        raise ValueError(
+            f"{name} must be a scalar or have shape [{count}] (one per {what}), got {tuple(value.shape)}"
+        )
+
+
+def check_positive(value: Tensor, name: str, unit: str) -> None:
+    """Raise unless every entry of `value` is finite and > 0, naming the first offending entries."""
+    bad = ~(torch.isfinite(value) & (value > 0))
+    if bad.any():
+        index = torch.nonzero(bad.reshape(-1)).reshape(-1)[:10].tolist()
+        raise ValueError(f"{name} must be finite and > 0 {unit}; offending entries {index}")

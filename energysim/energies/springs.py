@@ -1,0 +1,65 @@
+"""Hookean springs between pairs of vertices."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
+from energysim.mesh import SimplexMesh
+
+
+def spring_energy(length: Tensor, stiffness: Tensor, rest_length: Tensor) -> Tensor:
+    """½ k (ℓ − ℓ₀)², in J, broadcasting over springs."""
+    return 0.5 * stiffness * (length - rest_length) ** 2
+
+
+class Springs(ElementEnergy):
+    """Hookean springs: Σ_s ½ k_s (|x_j − x_i| − ℓ₀_s)².
+
+    Args:
+        edges: vertex pairs, shape `[s, 2]`; None takes every edge of the mesh.
+        stiffness: k in N/m, a scalar or shape `[s]`.
+        rest_length: ℓ₀ in m, a scalar or shape `[s]`; None measures it on the rest mesh.
+    """
+
+    def __init__(
+        self,
+        edges: Tensor | None = None,
+        stiffness: float | Tensor = 1.0,
+        rest_length: float | Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        self._edges = None if edges is None else torch.as_tensor(edges, dtype=torch.int64)
+        self.register_buffer("stiffness", as_parameter(stiffness, "stiffness"))
+        self._rest_length = None if rest_length is None else as_parameter(rest_length, "rest_length")
+
+    def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
+        edges = mesh.edges() if self._edges is None else self._edges
+        if edges.ndim != 2 or edges.shape[1] != 2 or edges.shape[0] == 0:
+            raise ValueError(f"edges must have shape [s, 2] with s > 0, got {tuple(edges.shape)}")
+        out_of_range = ((edges < 0) | (edges >= mesh.num_vertices)).any(dim=1)
+        if out_of_range.any():
+            index = torch.nonzero(out_of_range).reshape(-1)[:10].tolist()
+            raise ValueError(f"springs {index} name vertices outside [0, {mesh.num_vertices})")
+        count = edges.shape[0]
+        check_per_element(self.stiffness, count, "stiffness", "spring")
+        check_positive(self.stiffness, "stiffness", "N/m")
+        if self._rest_length is None:
+            rest_length = (mesh.vertices[edges[:, 1]] - mesh.vertices[edges[:, 0]]).norm(dim=-1)
+        else:
+            rest_length = self._rest_length
+            check_per_element(rest_length, count, "rest_length", "spring")
+        bad = ~(torch.isfinite(rest_length) & (rest_length >= 0))
+        if bad.any():
+            index = torch.nonzero(bad.reshape(-1)).reshape(-1)[:10].tolist()
+            raise ValueError(f"rest lengths must be finite and >= 0; offending springs {index}")
+        self.register_buffer("element_vertices", edges.contiguous())
+        self.register_buffer("rest_length", rest_length)
+
+    def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        delta = element_positions[..., 1, :] - element_positions[..., 0, :]
+        # a tiny floor keeps the gradient of the length finite for a collapsed spring
+        floor = 1e-30 * (1.0 + self.rest_length.detach()) ** 2
+        length = torch.sqrt((delta * delta).sum(dim=-1) + floor)
+        return spring_energy(length, self.stiffness, self.rest_length)

@@ -1,0 +1,261 @@
+"""VTK output: single ``.vtu`` frames and ``.pvd`` time series for ParaView / pyvista.
+
+Every file is written atomically (temporary file in the same folder, then :func:`os.replace`), so a crash
+mid-write leaves either the previous file or no file at the destination, never a truncated one. Inputs
+may be torch tensors or numpy arrays; this module never imports the solver.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import meshio
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+_CELL_TYPES = {3: "triangle", 4: "tetra"}
+
+# mkstemp creates files with mode 0600; read the umask once (os.umask is process-global and racy)
+# so that atomically written files get the same permissions as a plain open() would give them.
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+def to_numpy(x: Any, name: str = "array") -> np.ndarray:
+    """Return ``x`` (torch tensor, numpy array or nested sequence) as a numpy array, detached and on CPU."""
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        x = x.detach().cpu().numpy()
+    try:
+        return np.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} could not be converted to an array: {err}") from err
+
+
+def check_vertices(vertices: Any, name: str = "vertices") -> np.ndarray:
+    """Validate vertex positions `[n, 2]` or `[n, 3]` and return them as float64 `[n, 3]` (2D: z = 0)."""
+    v = to_numpy(vertices, name)
+    if v.ndim != 2 or v.shape[1] not in (2, 3):
+        raise ValueError(f"{name} must have shape [n, 2] or [n, 3], got {list(v.shape)}")
+    if v.shape[0] == 0:
+        raise ValueError(f"{name} is empty (n = 0)")
+    if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+        raise ValueError(f"{name} must be numeric, got dtype {v.dtype}")
+    v = v.astype(np.float64)
+    if not np.all(np.isfinite(v)):
+        bad = int(np.count_nonzero(~np.isfinite(v).all(axis=1)))
+        raise ValueError(f"{name} contains NaN or inf in {bad} of {v.shape[0]} rows")
+    if v.shape[1] == 2:
+        v = np.hstack([v, np.zeros((v.shape[0], 1))])
+    return v
+
+
+def check_index_array(
+    cells: Any, n_vertices: int | None, widths: Sequence[int], name: str = "cells"
+) -> np.ndarray:
+    """Validate an integer connectivity array `[m, k]` (k in ``widths``) against ``n_vertices`` vertices."""
+    c = to_numpy(cells, name)
+    if c.ndim != 2 or c.shape[1] not in widths:
+        shapes = " or ".join(f"[m, {k}]" for k in widths)
+        raise ValueError(f"{name} must have shape {shapes}, got {list(c.shape)}")
+    if c.shape[0] == 0:
+        raise ValueError(f"{name} is empty (m = 0)")
+    if not np.issubdtype(c.dtype, np.integer):
+        raise ValueError(f"{name} must be an integer array, got dtype {c.dtype}")
+    c = c.astype(np.int64)
+    lo, hi = int(c.min()), int(c.max())
+    if lo < 0 or (n_vertices is not None and hi >= n_vertices):
+        raise ValueError(f"{name} indices span [{lo}, {hi}], outside the valid range [0, {n_vertices})")
+    return c
+
+
+def _check_data(data: Mapping[str, Any] | None, count: int, what: str) -> dict[str, np.ndarray]:
+    """Validate per-point / per-cell arrays `[count]` or `[count, k]`; 2-vectors are padded to 3."""
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{what}_data must be a dict name -> array, got {type(data).__name__}")
+    out: dict[str, np.ndarray] = {}
+    for key, value in data.items():
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"{what}_data names must be non-empty strings, got {key!r}")
+        a = to_numpy(value, f"{what}_data[{key!r}]")
+        if a.ndim not in (1, 2) or a.shape[0] != count:
+            raise ValueError(
+                f"{what}_data[{key!r}] must have shape [{count}] or [{count}, k] "
+                f"(one row per {what}), got {list(a.shape)}"
+            )
+        if a.dtype == np.bool_:
+            a = a.astype(np.uint8)  # VTK has no boolean array type
+        elif not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"{what}_data[{key!r}] must be numeric, got dtype {a.dtype}")
+        if a.ndim == 2 and a.shape[1] == 2:
+            # ParaView only treats 3-component arrays as vectors (glyphs, warp by vector).
+            a = np.hstack([a, np.zeros((count, 1), dtype=a.dtype)])
+        out[key] = np.ascontiguousarray(a)
+    return out
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success it replaces ``path``, on error it is removed.
+
+    The temporary name keeps the destination's suffix, since some writers pick the format from it.
+    """
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}")
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        # Flush to disk before the rename so a power loss cannot leave a renamed but empty file.
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.replace(tmp, dest)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_vtu(
+    path: str | os.PathLike[str],
+    vertices: Any,
+    cells: Any,
+    point_data: Mapping[str, Any] | None = None,
+    cell_data: Mapping[str, Any] | None = None,
+) -> Path:
+    """Write an unstructured-grid ``.vtu`` file (binary, atomic) and return its path.
+
+    Args:
+        path: destination file (parent folders are created).
+        vertices: positions `[n, 3]` or `[n, 2]` (2D is written with z = 0), in the simulation's length unit.
+        cells: vertex indices `[m, 4]` (tetrahedra, needs 3D vertices) or `[m, 3]` (triangles).
+        point_data: name -> `[n]` or `[n, k]`; `[n, 2]` vectors are padded with a zero z component.
+        cell_data: name -> `[m]` or `[m, k]`; `[m, 2]` vectors are padded likewise.
+    """
+    v_in = to_numpy(vertices, "vertices")
+    points = check_vertices(v_in)
+    conn = check_index_array(cells, points.shape[0], (3, 4))
+    if conn.shape[1] == 4 and v_in.shape[1] == 2:
+        raise ValueError("4-node cells are written as tetrahedra and need 3D vertices [n, 3], got [n, 2]")
+    pdata = _check_data(point_data, points.shape[0], "point")
+    cdata = _check_data(cell_data, conn.shape[0], "cell")
+    mesh = meshio.Mesh(
+        points,
+        [(_CELL_TYPES[conn.shape[1]], conn)],
+        point_data=pdata,
+        cell_data={k: [a] for k, a in cdata.items()},
+    )
+    dest = Path(path)
+    with atomic_output(dest) as tmp:
+        # Looked up on the module at call time so tests can monkeypatch meshio.write.
+        meshio.write(tmp, mesh, file_format="vtu", binary=True)
+    return dest
+
+
+def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str | os.PathLike[str]]]) -> Path:
+    """Write a ParaView collection (``.pvd``) listing ``(time, file)`` pairs, atomically.
+
+    Args:
+        path: destination ``.pvd`` file.
+        entries: `(time, file)` with strictly increasing finite times (simulation time unit, usually s);
+            relative files are taken relative to the pvd's folder, absolute ones are made relative to it.
+    """
+    dest = Path(path)
+    lines = [
+        '<?xml version="1.0"?>',
+        '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+        "  <Collection>",
+    ]
+    previous = -math.inf
+    for time, file in entries:
+        t = float(time)
+        if not math.isfinite(t):
+            raise ValueError(f"pvd times must be finite, got {t}")
+        if t <= previous:
+            raise ValueError(f"pvd times must be strictly increasing, got {t} after {previous}")
+        previous = t
+        f = Path(file)
+        if f.is_absolute():
+            f = Path(os.path.relpath(f, dest.parent.resolve()))
+        # repr() round-trips the float exactly; posix separators keep the file portable.
+        lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f.as_posix())}/>')
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    with atomic_output(dest) as tmp:
+        tmp.write_text("\n".join(lines), encoding="utf-8")
+    return dest
+
+
+class VTKSeries:
+    """Writes one ``.vtu`` per frame plus a ``.pvd`` collection that lists (time, file).
+
+    ParaView and pyvista (``pyvista.get_reader(series.pvd_path)``) open the ``.pvd`` as a time series.
+    The collection is rewritten after each complete frame, so it never references a partial file.
+    Files of an earlier run in the same folder with the same ``name`` are overwritten frame by frame.
+
+    Args:
+        folder: output folder (created with its parents).
+        cells: connectivity `[m, 4]` (tetrahedra) or `[m, 3]` (triangles), shared by all frames.
+        name: file stem: frames are ``{name}_{k:05d}.vtu``, the collection ``{name}.pvd``.
+    """
+
+    def __init__(self, folder: str | os.PathLike[str], cells: Any, name: str = "frame") -> None:
+        if not name or any(s in name for s in ("/", "\\", os.sep)):
+            raise ValueError(f"name must be a non-empty file stem without path separators, got {name!r}")
+        self.folder = Path(folder)
+        self.name = name
+        self.cells = check_index_array(cells, None, (3, 4))
+        self.frames: list[tuple[float, Path]] = []
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def pvd_path(self) -> Path:
+        """Path of the ``.pvd`` collection file."""
+        return self.folder / f"{self.name}.pvd"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def write(
+        self,
+        time: float,
+        vertices: Any,
+        point_data: Mapping[str, Any] | None = None,
+        cell_data: Mapping[str, Any] | None = None,
+    ) -> Path:
+        """Write the next frame at ``time`` (strictly after the previous one) and update the ``.pvd``.
+
+        Args:
+            time: simulation time of the frame (usually s); tensors of one element are accepted.
+            vertices: positions `[n, 3]` or `[n, 2]`.
+            point_data, cell_data: as in :func:`write_vtu`.
+
+        Returns:
+            The path of the frame's ``.vtu`` file.
+        """
+        t_arr = to_numpy(time, "time")
+        if t_arr.size != 1:
+            raise ValueError(f"time must be a single number, got shape {list(t_arr.shape)}")
+        t = float(t_arr.reshape(()))
+        if not math.isfinite(t):
+            raise ValueError(f"time must be finite, got {t}")
+        if self.frames and t <= self.frames[-1][0]:
+            raise ValueError(f"time must increase from frame to frame, got {t} after {self.frames[-1][0]}")
+        frame_path = self.folder / f"{self.name}_{len(self.frames):05d}.vtu"
+        write_vtu(frame_path, vertices, self.cells, point_data, cell_data)
+        entries = [(ft, fp.name) for ft, fp in self.frames] + [(t, frame_path.name)]
+        write_pvd(self.pvd_path, entries)
+        # Only recorded once both files are in place: a failure above lets the next call retry index k.
+        self.frames.append((t, frame_path))
+        logger.debug("wrote frame %d (t = %g) to %s", len(self.frames) - 1, t, frame_path)
+        return frame_path

@@ -1,0 +1,17 @@
+"""Finite-element building blocks: kinematics of linear simplices and pure material densities."""
+
+from energysim.fem.kinematics import deformation_gradient, shape_gradients, simplex_rest_frame
+from energysim.fem.materials import (
+    lame_parameters,
+    stable_neo_hookean_density,
+    stable_neo_hookean_stress_hessian,
+)
+
+__all__ = [
+    "deformation_gradient",
+    "lame_parameters",
+    "shape_gradients",
+    "simplex_rest_frame",
+    "stable_neo_hookean_density",
+    "stable_neo_hookean_stress_hessian",
+]

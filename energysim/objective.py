@@ -1,0 +1,72 @@
+"""The function every optimizer minimises, and the one convergence measure they share."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_operator
+from energysim.energies.base import EnergyTerm
+
+
+@dataclass
+class Objective:
+    """E(x) = Σ_i E_i(x) over the free vertices, with counters of what solvers evaluated.
+
+    Args:
+        terms: energy terms; each maps `[B, n, d]` to `[B]`, in J.
+        free: which vertices move, shape `[n]`, bool; fixed ones keep their value in `x0`.
+        residual_scale: h / m_i per vertex, shape `[n]`, in s/kg: the velocity residual is
+            `residual_scale · ∇E` in m/s (the implicit-Euler momentum residual when the inertia
+            term is in `terms`).
+        action: the step's action, shape `[B, a]`, or None.
+    """
+
+    terms: Sequence[EnergyTerm]
+    free: Tensor
+    residual_scale: Tensor
+    action: Tensor | None = None
+    energy_evals: int = 0
+    grad_evals: int = 0
+
+    def energy(self, x: Tensor) -> Tensor:
+        """E(x), shape `[B]`, in J."""
+        self.energy_evals += 1
+        with torch.no_grad():
+            return self._total(x)
+
+    def _total(self, x: Tensor) -> Tensor:
+        total = None
+        for term in self.terms:
+            value = term(x, self.action)
+            total = value if total is None else total + value
+        if total is None:
+            return x.new_zeros(x.shape[0])
+        return total
+
+    def energy_and_gradient(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """E(x) `[B]` in J and ∇E(x) `[B, n, d]` in N, zero on fixed vertices."""
+        self.grad_evals += 1
+        value, gradient = energy_and_gradient(self._total, x)
+        return value, gradient * self.free[:, None].to(gradient.dtype)
+
+    def residual(self, gradient: Tensor) -> Tensor:
+        """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""
+        scaled = gradient * self.residual_scale[:, None]
+        return scaled.abs().amax(dim=(-1, -2))
+
+    def max_step(self, x: Tensor, dx: Tensor) -> Tensor:
+        """Largest admissible step fraction along `dx`, shape `[B]`, at most 1."""
+        limit = x.new_ones(x.shape[0])
+        for term in self.terms:
+            term_limit = term.max_step(x, dx)
+            if term_limit is not None:
+                limit = torch.minimum(limit, term_limit)
+        return limit
+
+    def hessian(self, x: Tensor, *, use_element_blocks: bool = True) -> HessianOperator:
+        """∇²E(x) as an operator (see `energysim.derivatives.hessian_operator`)."""
+        return hessian_operator(self.terms, x, self.action, self.free, use_element_blocks=use_element_blocks)

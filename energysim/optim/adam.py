@@ -1,0 +1,60 @@
+"""Adam on the free DOFs, stopped by the shared velocity residual."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from energysim.objective import Objective
+from energysim.optim.base import Solver, SolverResult
+
+
+@dataclass(frozen=True)
+class Adam(Solver):
+    """`torch.optim.Adam` on positions, halving the learning rate when the energy stops falling.
+
+    First-order: cheap per iteration, but many iterations for a tight residual; a baseline.
+
+    Args:
+        tol: velocity-residual tolerance in m/s.
+        max_iter: most Adam iterations.
+        strict: raise instead of warning when `tol` is not reached.
+        lr: initial learning rate, in m (Adam's steps are about `lr` per coordinate).
+        patience: iterations without a new lowest energy before the rate is halved.
+    """
+
+    max_iter: int = 5000
+    lr: float = 1e-3
+    patience: int = 10
+
+    def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
+        free = objective.free[:, None].to(x0.dtype)
+        x = x0.detach().clone().requires_grad_(True)
+        optimizer = torch.optim.Adam([x], lr=self.lr)
+        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            optimizer, factor=0.5, patience=self.patience, threshold=0.0
+        )
+        best = x.detach().clone()
+        best_energy = None
+        residual = None
+        iterations = 0
+        for _ in range(self.max_iter):
+            energy, gradient = objective.energy_and_gradient(x.detach())
+            residual = objective.residual(gradient)
+            total = float(energy.sum())
+            if best_energy is None or total < best_energy:
+                best_energy, best, best_residual = total, x.detach().clone(), residual
+            if (residual < self.tol).all():
+                break
+            iterations += 1
+            x.grad = gradient * free
+            optimizer.step()
+            scheduler.step(total)
+        else:
+            energy, gradient = objective.energy_and_gradient(x.detach())
+            residual = objective.residual(gradient)
+            if float(energy.sum()) > best_energy:
+                x, residual = best, best_residual
+        return self.finish(objective, x.detach(), residual, iterations, 0)

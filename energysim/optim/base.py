@@ -1,0 +1,151 @@
+"""What every optimizer shares: the result record, failure reporting, and the line search."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from energysim.objective import Objective
+
+
+class ConvergenceWarning(RuntimeWarning):
+    """A solve stopped before the velocity residual reached the solver's tolerance."""
+
+
+class ConvergenceError(RuntimeError):
+    """A solve failed (strict mode, or a non-finite iterate that can never be returned)."""
+
+
+@dataclass(frozen=True)
+class SolverResult:
+    """The outcome of one minimisation.
+
+    Attributes:
+        x: the minimiser found, shape `[B, n, d]`, in m.
+        iterations: outer iterations taken (Newton steps, L-BFGS or Adam iterations).
+        grad_evals: energy-and-gradient evaluations.
+        hvp_evals: Hessian-vector products (CG iterations for Newton–CG).
+        energy_evals: energy-only evaluations (line searches).
+        residual: final velocity residual ‖h M⁻¹ ∇E‖∞ in m/s, the worst over the batch.
+        converged: whether every batch entry reached `tol`.
+        solver: the solver's name.
+        tol: the tolerance in m/s.
+    """
+
+    x: Tensor
+    iterations: int
+    grad_evals: int
+    hvp_evals: int
+    energy_evals: int
+    residual: float
+    converged: bool
+    solver: str
+    tol: float
+
+    def summary(self) -> str:
+        """One line with every figure, for logs and warnings."""
+        return (
+            f"{self.solver}: {'converged' if self.converged else 'NOT converged'} in {self.iterations} "
+            f"iterations, velocity residual {self.residual:.3e} m/s (tol {self.tol:.1e}), "
+            f"{self.grad_evals} gradient evals, {self.hvp_evals} HVPs, {self.energy_evals} energy evals"
+        )
+
+
+@dataclass(frozen=True)
+class Solver:
+    """Base of the optimizers. Every solver stops on the same measure, the velocity residual.
+
+    Args:
+        tol: stop when ‖h M⁻¹ ∇E‖∞ < tol, in m/s.
+        max_iter: most outer iterations.
+        strict: raise `ConvergenceError` when `tol` is not reached, instead of warning.
+    """
+
+    tol: float = 1e-5
+    max_iter: int = 100
+    strict: bool = False
+
+    def __post_init__(self) -> None:
+        if not (self.tol > 0):
+            raise ValueError(f"tol must be > 0 m/s, got {self.tol}")
+        if self.max_iter < 1:
+            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:  # pragma: no cover - abstract
+        """Minimise `objective` from `x0` (shape `[B, n, d]`); fixed vertices keep their `x0` value."""
+        raise NotImplementedError
+
+    def finish(
+        self, objective: Objective, x: Tensor, residual: Tensor, iterations: int, hvps: int
+    ) -> SolverResult:
+        """Build the result; raise on non-finite iterates; warn or raise when not converged."""
+        worst = float(residual.max()) if residual.numel() else 0.0
+        result = SolverResult(
+            x=x.detach(),
+            iterations=iterations,
+            grad_evals=objective.grad_evals,
+            hvp_evals=hvps,
+            energy_evals=objective.energy_evals,
+            residual=worst,
+            converged=bool((residual < self.tol).all()),
+            solver=self.name,
+            tol=self.tol,
+        )
+        if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
+            raise ConvergenceError("non-finite positions or residual: " + result.summary())
+        if not result.converged:
+            if self.strict:
+                raise ConvergenceError(result.summary())
+            warnings.warn(result.summary(), ConvergenceWarning, stacklevel=3)
+        return result
+
+
+def backtracking_line_search(
+    objective: Objective,
+    x: Tensor,
+    energy: Tensor,
+    gradient: Tensor,
+    direction: Tensor,
+    initial_step: Tensor,
+    *,
+    sufficient_decrease: float = 1e-4,
+    max_halvings: int = 40,
+) -> tuple[Tensor, Tensor]:
+    """Armijo backtracking, per batch entry, from the largest admissible step.
+
+    Near convergence the energy change falls below the energy's rounding error, so a decrease
+    within a few ulps of |E| counts as no increase; otherwise Newton would stall short of
+    tight tolerances.
+
+    Args:
+        x, gradient, direction: shape `[B, n, d]`; energy, initial_step: shape `[B]`.
+
+    Returns:
+        step fractions `[B]` (0 where no step was accepted) and the energies there `[B]`.
+    """
+    slope = (gradient * direction).sum(dim=(-1, -2))
+    step = initial_step.clone()
+    accepted = torch.zeros_like(step, dtype=torch.bool)
+    new_energy = energy.clone()
+    rounding = 64 * torch.finfo(x.dtype).eps * energy.abs()
+    for _ in range(max_halvings):
+        trial = objective.energy(x + step[:, None, None] * direction)
+        ok = (
+            torch.isfinite(trial)
+            & (trial <= energy + sufficient_decrease * step * slope + rounding)
+            & ~accepted
+        )
+        new_energy = torch.where(ok, trial, new_energy)
+        accepted = accepted | ok
+        if accepted.all():
+            break
+        step = torch.where(accepted, step, 0.5 * step)
+    step = torch.where(accepted, step, torch.zeros_like(step))
+    return step, new_energy

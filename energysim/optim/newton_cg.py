@@ -1,0 +1,167 @@
+"""Newton–CG: truncated preconditioned CG on Hessian-vector products, with a line search.
+
+Each Newton iteration solves H p = −∇E inexactly by CG (no matrix is factorised). CG stops
+early when the linear residual falls below a forcing fraction of the gradient (inexact Newton:
+loose far from the minimum, tight near it), or on negative curvature (Steihaug), where it keeps
+the last descent iterate, or the preconditioned gradient if there is none. The step is then cut
+to the largest one every term allows (`max_step`) and backtracked until the energy decreases.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from energysim.derivatives import HessianOperator
+from energysim.objective import Objective
+from energysim.optim.base import Solver, SolverResult, backtracking_line_search
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(dim=(-1, -2))
+
+
+def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> tuple[Tensor, Tensor]:
+    """Inverses of the per-vertex d×d diagonal blocks of H, shape `[B, n, d, d]`, and a fallback flag.
+
+    A block that is not positive definite (compressed or inverted elements) is replaced by its
+    diagonal's absolute value, so the preconditioner stays SPD and CG stays well defined.
+    """
+    blocks = operator.vertex_blocks(like)
+    free = operator.free
+    eye = torch.eye(like.shape[-1], dtype=like.dtype, device=like.device)
+    blocks = torch.where(free[None, :, None, None], blocks, eye)
+    factor, info = torch.linalg.cholesky_ex(blocks)
+    bad = info != 0
+    if bad.any():
+        diag = blocks.diagonal(dim1=-2, dim2=-1).abs().clamp_min(torch.finfo(like.dtype).tiny)
+        fallback = torch.diag_embed(diag)
+        factor = torch.where(bad[..., None, None], torch.linalg.cholesky(fallback), factor)
+    return torch.cholesky_inverse(factor), bad
+
+
+@dataclass(frozen=True)
+class NewtonCG(Solver):
+    """Inexact Newton with truncated preconditioned CG on Hessian-vector products.
+
+    Args:
+        tol: velocity-residual tolerance in m/s.
+        max_iter: most Newton iterations.
+        strict: raise instead of warning when `tol` is not reached.
+        max_cg_iter: most CG iterations per Newton iteration.
+        forcing: the largest CG relative tolerance η; η_k = min(forcing, sqrt(r_k / r_0)).
+        hessian: "elements" builds per-element Hessian blocks once per Newton iteration and
+            takes products from them; "autograd" takes every product by double backward
+            (slower; the plain reference).
+        preconditioner: "block_jacobi" (per-vertex d×d blocks) or "none" (mass scaling only).
+    """
+
+    max_iter: int = 50
+    max_cg_iter: int = 1000
+    forcing: float = 0.01
+    hessian: str = "elements"
+    preconditioner: str = "block_jacobi"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.hessian not in ("elements", "autograd"):
+            raise ValueError(f"hessian must be 'elements' or 'autograd', got {self.hessian!r}")
+        if self.preconditioner not in ("block_jacobi", "none"):
+            raise ValueError(f"preconditioner must be 'block_jacobi' or 'none', got {self.preconditioner!r}")
+        if not (0 < self.forcing < 1):
+            raise ValueError(f"forcing must lie in (0, 1), got {self.forcing}")
+
+    def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
+        x = x0.detach().clone()
+        energy, gradient = objective.energy_and_gradient(x)
+        residual = objective.residual(gradient)
+        first_residual = residual.clone()
+        hvps = 0
+        iterations = 0
+        steepest = torch.zeros_like(residual, dtype=torch.bool)  # entries whose last Newton step failed
+        stalled = torch.zeros_like(steepest)
+        for _ in range(self.max_iter):
+            active = (residual >= self.tol) & ~stalled
+            if not active.any():
+                break
+            iterations += 1
+            operator = objective.hessian(x, use_element_blocks=self.hessian == "elements")
+            precondition = self._preconditioner(operator, x, objective)
+            ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
+            eta = torch.clamp(ratio, max=self.forcing)
+            direction = self._truncated_cg(
+                operator, -gradient, precondition, eta, active & ~steepest, objective
+            )
+            hvps += operator.products
+            direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
+            # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient
+            slope = _dot(gradient, direction)
+            uphill = slope >= 0
+            if uphill.any():
+                direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
+            direction = direction * active[:, None, None]
+            step, new_energy = backtracking_line_search(
+                objective, x, energy, gradient, direction, objective.max_step(x, direction)
+            )
+            failed = active & (step == 0)
+            stalled = stalled | (failed & steepest)
+            steepest = failed
+            x = x + step[:, None, None] * direction
+            energy, gradient = objective.energy_and_gradient(x)
+            residual = objective.residual(gradient)
+        return self.finish(objective, x, residual, iterations, hvps)
+
+    def _preconditioner(self, operator: HessianOperator, x: Tensor, objective: Objective):
+        if self.preconditioner == "block_jacobi" and (operator.blocks or operator.diagonal is not None):
+            inverse, _ = block_jacobi_preconditioner(operator, x)
+            return lambda r: (inverse @ r[..., None])[..., 0]
+        scale = objective.residual_scale[:, None]
+        return lambda r: r * scale
+
+    def _truncated_cg(
+        self,
+        operator: HessianOperator,
+        rhs: Tensor,
+        precondition,
+        eta: Tensor,
+        active: Tensor,
+        objective: Objective,
+    ) -> Tensor:
+        """Approximately solve H p = rhs, per batch entry; entries not `active` get p = 0."""
+        solution = torch.zeros_like(rhs)
+        remainder = rhs.clone()
+        z = precondition(remainder)
+        search = z.clone()
+        rz = _dot(remainder, z)
+        target = eta * torch.sqrt(_dot(rhs, rhs))
+        # no need to solve the linear model more finely than the velocity tolerance itself
+        velocity_target = 0.1 * self.tol
+        running = active.clone()
+        first = torch.ones_like(active)
+        for _ in range(self.max_cg_iter):
+            if not running.any():
+                break
+            product = operator.matvec(search)
+            curvature = _dot(search, product)
+            negative = running & (curvature <= 0)
+            if negative.any():
+                # Steihaug: stop along negative curvature; with no iterate yet, go down the gradient
+                solution = torch.where((negative & first)[:, None, None], search, solution)
+                running = running & ~negative
+            alpha = torch.where(
+                running, rz / torch.where(running, curvature, torch.ones_like(curvature)), 0.0
+            )
+            solution = solution + alpha[:, None, None] * search
+            remainder = remainder - alpha[:, None, None] * product
+            first = first & ~running
+            norm = torch.sqrt(_dot(remainder, remainder))
+            velocity = objective.residual(remainder)
+            running = running & (norm > target) & (velocity > velocity_target)
+            z = precondition(remainder)
+            rz_new = _dot(remainder, z)
+            beta = torch.where(running, rz_new / torch.where(rz == 0, torch.ones_like(rz), rz), 0.0)
+            search = z + beta[:, None, None] * search
+            rz = rz_new
+        return solution

@@ -1,0 +1,153 @@
+"""A scene: one mesh, its masses, the energy terms it needs, pinned vertices, a time step and a solver."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from energysim.energies.base import EnergyTerm, check_positive
+from energysim.energies.gravity import Gravity
+from energysim.mesh import SimplexMesh
+from energysim.optim import NewtonCG, Solver
+
+
+class Scene(nn.Module):
+    """The static model of a simulation; states are plain tensors kept outside it.
+
+    Args:
+        mesh: rest mesh (`TetMesh` in 3D, `TriMesh` in 2D).
+        density: ρ in kg/m³ (kg/m² per metre of depth in 2D: 2D quantities are per unit depth).
+        dt: time step h in s, > 0.
+        gravity: acceleration of gravity, d components, in m/s²; None: no gravity term at all.
+        vertex_mass: optional lumped masses, shape `[n]`, in kg, instead of density × rest volume.
+        solver: the optimizer for each step; default `NewtonCG(tol=1e-5)`.
+
+    Example:
+        >>> scene = Scene(TetMesh.box(size=(1, .2, .2), cells=(10, 2, 2)), dt=1/60)
+        >>> scene.add(NeoHookean(youngs_modulus=1e5, poissons_ratio=0.3))
+    """
+
+    def __init__(
+        self,
+        mesh: SimplexMesh,
+        density: float = 1000.0,
+        dt: float = 1.0 / 60.0,
+        gravity: Sequence[float] | Tensor | None = (0.0, -9.81, 0.0),
+        vertex_mass: Tensor | None = None,
+        solver: Solver | None = None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(mesh, SimplexMesh):
+            raise TypeError(f"mesh must be a TetMesh or TriMesh, got {type(mesh).__name__}")
+        self.mesh = mesh
+        self.dt = dt
+        if vertex_mass is None:
+            if not (math.isfinite(density) and density > 0):
+                raise ValueError(f"density must be finite and > 0 kg/m^3, got {density}")
+            vertex_mass = density * mesh.vertex_rest_volume()
+        vertex_mass = torch.as_tensor(vertex_mass, dtype=torch.float64)
+        if tuple(vertex_mass.shape) != (mesh.num_vertices,):
+            raise ValueError(
+                f"vertex_mass must have shape [{mesh.num_vertices}], got {tuple(vertex_mass.shape)}"
+            )
+        check_positive(vertex_mass, "vertex_mass", "kg")
+        self.register_buffer("vertex_mass", vertex_mass)
+        self.register_buffer("rest_positions", mesh.vertices.clone())
+        self.register_buffer("fixed", torch.zeros(mesh.num_vertices, dtype=torch.bool))
+        self.terms = nn.ModuleList()
+        self.solver: Solver = solver if solver is not None else NewtonCG(tol=1e-5)
+        if gravity is not None:
+            self.add(Gravity(gravity))
+
+    @property
+    def dt(self) -> float:
+        """Time step h in s."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value: float) -> None:
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"dt must be a finite number > 0 s, got {value!r}")
+        self._dt = float(value)
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension d (2 or 3)."""
+        return self.mesh.dim
+
+    @property
+    def num_vertices(self) -> int:
+        return self.mesh.num_vertices
+
+    @property
+    def num_dofs(self) -> int:
+        """n·d: positions take `num_dofs` entries of a state, velocities the next `num_dofs`."""
+        return self.mesh.num_vertices * self.mesh.dim
+
+    @property
+    def free(self) -> Tensor:
+        """Which vertices move, shape `[n]`, bool."""
+        return ~self.fixed
+
+    def add(self, term: EnergyTerm) -> EnergyTerm:
+        """Bind `term` to this scene's mesh and add it to the step objective; returns it."""
+        if not isinstance(term, EnergyTerm):
+            raise TypeError(f"expected an EnergyTerm, got {type(term).__name__}")
+        term.bind(self.mesh, self.vertex_mass)
+        term.to(dtype=self.vertex_mass.dtype, device=self.vertex_mass.device)
+        self.terms.append(term)
+        return term
+
+    def fix(self, vertex_indices: Sequence[int] | Tensor) -> None:
+        """Pin vertices where the state puts them: they are eliminated from every solve."""
+        index = torch.as_tensor(vertex_indices, dtype=torch.int64, device=self.fixed.device).reshape(-1)
+        bad = (index < 0) | (index >= self.num_vertices)
+        if bad.any():
+            raise ValueError(
+                f"vertex indices {index[bad][:10].tolist()} are outside [0, {self.num_vertices})"
+            )
+        fixed = self.fixed.clone()
+        fixed[index] = True
+        self.fixed = fixed
+
+    def initial_state(
+        self, positions: Tensor | None = None, velocities: Tensor | None = None, batch_size: int | None = None
+    ) -> Tensor:
+        """A state `[x.flatten(), v.flatten()]`, shape `[2·num_dofs]` (or `[B, 2·num_dofs]`).
+
+        Args:
+            positions: shape `[n, d]` in m; default the rest positions.
+            velocities: shape `[n, d]` in m/s; default zero.
+            batch_size: stack B copies.
+        """
+        x = self.rest_positions if positions is None else torch.as_tensor(positions).to(self.rest_positions)
+        v = torch.zeros_like(x) if velocities is None else torch.as_tensor(velocities).to(x)
+        for name, value in (("positions", x), ("velocities", v)):
+            if tuple(value.shape) != (self.num_vertices, self.dim):
+                raise ValueError(
+                    f"{name} must have shape [{self.num_vertices}, {self.dim}], got {tuple(value.shape)}"
+                )
+        state = torch.cat([x.reshape(-1), v.reshape(-1)])
+        return state if batch_size is None else state.expand(batch_size, -1).clone()
+
+    def split_state(self, state: Tensor) -> tuple[Tensor, Tensor]:
+        """Positions and velocities `[B, n, d]` from a state `[2·num_dofs]` or `[B, 2·num_dofs]`."""
+        if not isinstance(state, Tensor):
+            raise TypeError(f"state must be a torch.Tensor, got {type(state).__name__}")
+        if state.ndim not in (1, 2) or state.shape[-1] != 2 * self.num_dofs:
+            raise ValueError(
+                f"state must have shape [{2 * self.num_dofs}] or [B, {2 * self.num_dofs}] "
+                f"(positions then velocities of {self.num_vertices} vertices in {self.dim}D), "
+                f"got {tuple(state.shape)}"
+            )
+        if not state.is_floating_point():
+            raise TypeError(f"state must be a floating-point tensor, got {state.dtype}")
+        batched = state.reshape(-1, 2, self.num_vertices, self.dim)
+        return batched[:, 0], batched[:, 1]
+
+    def potential_terms(self) -> list[EnergyTerm]:
+        """The scene's terms (everything but inertia)."""
+        return list(self.terms)

@@ -1,0 +1,131 @@
+"""One implicit-Euler step as a minimisation, and quasi-static equilibrium.
+
+x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x),   v_{n+1} = (x_{n+1} − x_n)/h.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from energysim.derivatives import energy_and_gradient
+from energysim.energies.inertia import Inertia
+from energysim.objective import Objective
+from energysim.optim import Solver, SolverResult
+from energysim.scene import Scene
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """A new state and the statistics of the solve that produced it."""
+
+    state: Tensor
+    stats: SolverResult
+
+
+def _match_scene(scene: Scene, like: Tensor) -> None:
+    # device and dtype follow the state: move the scene's buffers the first time they differ
+    if scene.vertex_mass.dtype != like.dtype or scene.vertex_mass.device != like.device:
+        scene.to(dtype=like.dtype, device=like.device)
+
+
+def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
+    if action is None:
+        return None
+    if not isinstance(action, Tensor):
+        action = torch.as_tensor(action)
+    if action.ndim == 1:
+        action = action.expand(batch, -1)
+    if action.ndim != 2 or action.shape[0] != batch:
+        raise ValueError(f"action must have shape [a] or [{batch}, a], got {tuple(action.shape)}")
+    if not torch.isfinite(action).all():
+        raise ValueError("action has non-finite entries")
+    return action
+
+
+def _warm_start(objective: Objective, predicted: Tensor, dt: float) -> Tensor:
+    # Add the displacement the linear terms (gravity) alone would cause in one step, h² M⁻¹ f:
+    # it costs one gradient of terms that are cheap, and saves the solver a Newton iteration.
+    linear = [term for term in objective.terms if term.is_linear]
+    if not linear:
+        return predicted
+    _, gradient = energy_and_gradient(lambda y: sum(term(y, objective.action) for term in linear), predicted)
+    return predicted - (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
+
+
+def step(
+    scene: Scene, state: Tensor, action: Tensor | None = None, solver: Solver | None = None
+) -> StepResult:
+    """Advance `state` by one implicit-Euler step of `scene.dt` and report the solve.
+
+    Args:
+        scene: the model.
+        state: `[x.flatten(), v.flatten()]`, shape `[2·num_dofs]` or `[B, 2·num_dofs]`, in m and m/s.
+        action: shape `[a]` or `[B, a]`, or None.
+        solver: overrides `scene.solver` for this step.
+
+    Returns:
+        the new state (same shape, device and dtype as `state`) and the solver's statistics.
+    """
+    x_prev, v_prev = scene.split_state(state)
+    if not torch.isfinite(state).all():
+        raise ValueError("state has non-finite entries")
+    _match_scene(scene, state)
+    action = _check_action(action, x_prev.shape[0])
+    x_prev, v_prev = x_prev.detach(), v_prev.detach()
+    free = scene.free[:, None].to(x_prev.dtype)
+    predicted = x_prev + scene.dt * v_prev * free
+    inertia = Inertia(scene.vertex_mass, scene.dt, predicted)
+    objective = Objective(
+        terms=[inertia, *scene.terms],
+        free=scene.free,
+        residual_scale=scene.dt / scene.vertex_mass,
+        action=action,
+    )
+    result = (solver or scene.solver).minimize(objective, _warm_start(objective, predicted, scene.dt))
+    x_next = result.x
+    v_next = (x_next - x_prev) / scene.dt
+    new_state = torch.cat([x_next.reshape(x_next.shape[0], -1), v_next.reshape(v_next.shape[0], -1)], dim=-1)
+    return StepResult(state=new_state.reshape(state.shape), stats=result)
+
+
+def timestep(scene: Scene, state: Tensor, action: Tensor | None = None) -> Tensor:
+    """The new state after one step, like `nimble.timestep(world, state, action)`; see `step`."""
+    return step(scene, state, action).state
+
+
+def solve_static(
+    scene: Scene, x0: Tensor | None = None, action: Tensor | None = None, solver: Solver | None = None
+) -> StepResult:
+    """Quasi-static equilibrium: argmin of the scene's potential terms (no inertia).
+
+    Fixed vertices stay where `x0` puts them. The stopping rule is the same velocity residual,
+    h M⁻¹ ∇E with h = `scene.dt`. Without enough fixed vertices the minimum is not unique
+    (rigid motions) or does not exist (gravity with nothing fixed): the solve then reports
+    that it did not converge.
+
+    Args:
+        x0: initial positions, shape `[n, d]` or `[B, n, d]`, in m; default the rest positions.
+
+    Returns:
+        `StepResult` whose `state` holds the equilibrium positions, shaped like `x0`.
+    """
+    x0 = scene.rest_positions if x0 is None else x0
+    if not isinstance(x0, Tensor):
+        x0 = torch.as_tensor(x0, dtype=scene.rest_positions.dtype)
+    if x0.shape[-2:] != (scene.num_vertices, scene.dim) or x0.ndim not in (2, 3):
+        raise ValueError(
+            f"x0 must have shape [{scene.num_vertices}, {scene.dim}] or [B, ...], got {tuple(x0.shape)}"
+        )
+    _match_scene(scene, x0)
+    batched = x0.reshape(-1, scene.num_vertices, scene.dim).detach()
+    objective = Objective(
+        terms=list(scene.terms),
+        free=scene.free,
+        residual_scale=scene.dt / scene.vertex_mass,
+        action=_check_action(action, batched.shape[0]),
+    )
+    result = (solver or scene.solver).minimize(objective, batched)
+    return StepResult(state=result.x.reshape(x0.shape), stats=result)

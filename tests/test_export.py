@@ -1,0 +1,364 @@
+"""Tests of energysim.export: VTK frames / PVD series (round trips, atomicity) and off-screen rendering."""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+import torch
+
+from energysim.export import VTKSeries, render_gif, render_mp4, render_png, write_pvd, write_vtu
+
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def _cube_tets() -> tuple[np.ndarray, np.ndarray]:
+    """Unit cube split into 6 tetrahedra around the diagonal 0-6: `[8, 3]` vertices, `[6, 4]` cells."""
+    v = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.float64)
+    # corner index = x + 2y + 4z; the six tets share the diagonal (0, 7)
+    cells = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
+    return v, cells
+
+
+def _boundary_triangles(cells: np.ndarray) -> np.ndarray:
+    """Faces of a tet mesh that belong to exactly one tet, `[s, 3]`."""
+    faces = np.concatenate([cells[:, [a, b, c]] for a, b, c in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))])
+    keys, counts = np.unique(np.sort(faces, axis=1), axis=0, return_counts=True)
+    return keys[counts == 1]
+
+
+def _square_tris() -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]])
+    return v, np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+
+
+# ---------------------------------------------------------------------------------------------- VTK files
+
+
+def test_write_vtu_round_trip_tets(tmp_path: Path) -> None:
+    v, cells = _cube_tets()
+    rng = np.random.default_rng(0)
+    v = v + 1e-3 * rng.standard_normal(v.shape)  # non-round values probe binary precision
+    temp = rng.standard_normal(8)
+    vel = rng.standard_normal((8, 3))
+    vol = rng.uniform(0.1, 1.0, 6)
+    out = write_vtu(
+        tmp_path / "a.vtu",
+        torch.tensor(v, requires_grad=True),  # tensors with grad are detached, not rejected
+        torch.tensor(cells),
+        point_data={"temperature": temp, "velocity": torch.tensor(vel)},
+        cell_data={"volume": vol},
+    )
+    assert out == tmp_path / "a.vtu"
+    m = meshio.read(out)
+    np.testing.assert_allclose(m.points, v, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(m.cells_dict["tetra"], cells)
+    np.testing.assert_allclose(m.point_data["temperature"], temp, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.point_data["velocity"], vel, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.cell_data["volume"][0], vol, rtol=0, atol=1e-12)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.vtu"]
+
+
+def test_write_vtu_round_trip_2d_pads_z_and_vectors(tmp_path: Path) -> None:
+    v, tris = _square_tris()
+    disp = np.arange(10.0).reshape(5, 2)
+    stress = np.arange(8.0).reshape(4, 2)
+    write_vtu(
+        tmp_path / "b.vtu", v, tris, point_data={"u": disp, "flag": v[:, 0] > 0.5}, cell_data={"s": stress}
+    )
+    m = meshio.read(tmp_path / "b.vtu")
+    np.testing.assert_allclose(m.points, np.c_[v, np.zeros(5)], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(m.cells_dict["triangle"], tris)
+    np.testing.assert_array_equal(m.point_data["u"], np.c_[disp, np.zeros(5)])
+    np.testing.assert_array_equal(m.point_data["flag"], [0, 1, 1, 0, 0])
+    np.testing.assert_array_equal(m.cell_data["s"][0], np.c_[stress, np.zeros(4)])
+
+
+def test_write_pvd_lists_relative_files_and_exact_times(tmp_path: Path) -> None:
+    times = [0.0, 0.1, 1 / 3]
+    pvd = write_pvd(
+        tmp_path / "s.pvd", [(times[0], "f0.vtu"), (times[1], tmp_path / "f1.vtu"), (times[2], "f 2.vtu")]
+    )
+    sets = ET.parse(pvd).getroot().findall("./Collection/DataSet")
+    assert [float(d.get("timestep")) for d in sets] == times  # exact, not rounded
+    assert [d.get("file") for d in sets] == ["f0.vtu", "f1.vtu", "f 2.vtu"]
+
+
+def test_vtk_series_read_back_with_pyvista(tmp_path: Path) -> None:
+    pv = pytest.importorskip("pyvista")
+    v, cells = _cube_tets()
+    series = VTKSeries(tmp_path / "run" / "vtk", cells, name="body")
+    times = [0.0, 0.25, 0.5]
+    frames = [v + np.array([0.0, -0.3 * k, 0.1 * k]) for k in range(3)]
+    for t, f in zip(times, frames, strict=True):
+        series.write(torch.tensor(t), torch.tensor(f), point_data={"height": f[:, 1]})
+    assert series.pvd_path == tmp_path / "run" / "vtk" / "body.pvd"
+    assert [t for t, _ in series.frames] == times
+    assert [p.name for _, p in series.frames] == ["body_00000.vtu", "body_00001.vtu", "body_00002.vtu"]
+
+    reader = pv.get_reader(str(series.pvd_path))
+    assert list(reader.time_values) == times
+    reader.set_active_time_value(times[-1])
+    grid = reader.read()[0]
+    np.testing.assert_allclose(grid.points, frames[-1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(grid.point_data["height"], frames[-1][:, 1], rtol=0, atol=1e-12)
+
+
+def _failing_write(path, mesh, *args, **kwargs) -> None:
+    Path(path).write_bytes(b"<VTKFile half written")
+    raise RuntimeError("disk full")
+
+
+def test_write_vtu_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    v, cells = _cube_tets()
+    dest = write_vtu(tmp_path / "a.vtu", v, cells)
+    before = dest.read_bytes()
+    monkeypatch.setattr(meshio, "write", _failing_write)
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_vtu(dest, v + 1.0, cells)
+    assert dest.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["a.vtu"]  # no temporary file left
+    with pytest.raises(RuntimeError):
+        write_vtu(tmp_path / "new.vtu", v, cells)
+    assert not (tmp_path / "new.vtu").exists()
+
+
+def test_vtk_series_failed_frame_leaves_pvd_with_complete_frames(tmp_path: Path, monkeypatch) -> None:
+    v, cells = _cube_tets()
+    series = VTKSeries(tmp_path, cells)
+    series.write(0.0, v)
+    series.write(0.5, v + 1.0)
+    pvd_before = series.pvd_path.read_bytes()
+    with monkeypatch.context() as mp:
+        mp.setattr(meshio, "write", _failing_write)
+        with pytest.raises(RuntimeError):
+            series.write(1.0, v + 2.0)
+    assert series.pvd_path.read_bytes() == pvd_before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.pvd", "frame_00000.vtu", "frame_00001.vtu"]
+    assert len(series.frames) == 2
+    # the next write retries the same index and the series goes on
+    assert series.write(1.0, v + 2.0).name == "frame_00002.vtu"
+    sets = ET.parse(series.pvd_path).getroot().findall("./Collection/DataSet")
+    assert [(float(d.get("timestep")), d.get("file")) for d in sets] == [
+        (0.0, "frame_00000.vtu"),
+        (0.5, "frame_00001.vtu"),
+        (1.0, "frame_00002.vtu"),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("vertices", "cells", "kwargs", "match"),
+    [
+        (np.zeros((8, 4)), None, {}, r"shape \[n, 2\] or \[n, 3\]"),
+        (np.zeros((0, 3)), None, {}, "empty"),
+        (np.full((8, 3), np.nan), None, {}, "NaN"),
+        (None, np.array([[0, 1, 2, 8]]), {}, "outside the valid range"),
+        (None, np.array([[0, 1, -1, 2]]), {}, "outside the valid range"),
+        (None, np.array([[0.0, 1.0, 2.0, 3.0]]), {}, "integer"),
+        (None, np.array([[0, 1, 2, 3, 4]]), {}, r"shape \[m, 3\] or \[m, 4\]"),
+        (None, None, {"point_data": {"t": np.zeros(7)}}, r"point_data\['t'\] must have shape \[8\]"),
+        (None, None, {"cell_data": {"c": np.zeros((5, 3))}}, r"cell_data\['c'\] must have shape \[6\]"),
+        (None, None, {"point_data": {"t": np.array(["a"] * 8)}}, "numeric"),
+        (np.zeros((8, 2)), None, {}, "need 3D vertices"),
+    ],
+)
+def test_write_vtu_rejects_bad_input(tmp_path: Path, vertices, cells, kwargs, match) -> None:
+    v, c = _cube_tets()
+    with pytest.raises(ValueError, match=match):
+        write_vtu(
+            tmp_path / "x.vtu", v if vertices is None else vertices, c if cells is None else cells, **kwargs
+        )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_series_and_pvd_reject_bad_times(tmp_path: Path) -> None:
+    v, cells = _cube_tets()
+    series = VTKSeries(tmp_path, cells)
+    series.write(1.0, v)
+    with pytest.raises(ValueError, match="increase"):
+        series.write(1.0, v)
+    with pytest.raises(ValueError, match="finite"):
+        series.write(float("nan"), v)
+    with pytest.raises(ValueError, match="out"):
+        VTKSeries(tmp_path, np.array([[0, 1, 2, 9]])).write(0.0, v)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        write_pvd(tmp_path / "x.pvd", [(0.0, "a.vtu"), (0.0, "b.vtu")])
+    with pytest.raises(ValueError, match="path separators"):
+        VTKSeries(tmp_path, cells, name="a/b")
+
+
+def test_import_does_not_load_pyvista() -> None:
+    code = "import sys, energysim.export; print('pyvista' in sys.modules, 'vtkmodules' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+
+
+@pytest.fixture(scope="module")
+def offscreen() -> None:
+    pv = pytest.importorskip("pyvista")
+    try:
+        plotter = pv.Plotter(off_screen=True, window_size=[32, 32])
+        plotter.add_mesh(pv.Sphere())
+        plotter.screenshot(None, return_img=True)
+        plotter.close()
+    except Exception as err:  # noqa: BLE001 - any failure here means no off-screen OpenGL
+        pytest.skip(f"pyvista cannot create an off-screen render window: {err}")
+
+
+def _rgb(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _fraction_not_background(img: np.ndarray) -> float:
+    background = img[0, 0]  # corners are background with the default camera
+    return float(np.mean(np.any(img != background, axis=-1)))
+
+
+def test_render_png_3d(tmp_path: Path, offscreen) -> None:
+    v, cells = _cube_tets()
+    faces = _boundary_triangles(cells)
+    assert faces.shape == (12, 3)
+    out = render_png(
+        tmp_path / "cube.png",
+        torch.tensor(v),
+        faces,
+        scalars=v[:, 1],
+        window_size=(320, 200),
+        ground_height=0.0,
+        title="cube",
+    )
+    img = _rgb(out)
+    assert img.shape == (200, 320, 3)
+    assert _fraction_not_background(img) > 0.02
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # shading and colour map, not flat fills
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.png"]
+
+
+def test_render_png_2d_triangles_and_segments(tmp_path: Path, offscreen) -> None:
+    v, tris = _square_tris()
+    img = _rgb(render_png(tmp_path / "tri.png", v, tris, window_size=(200, 120)))
+    assert img.shape == (120, 200, 3)
+    assert _fraction_not_background(img) > 0.02
+    segments = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    img = _rgb(render_png(tmp_path / "seg.png", v, segments, window_size=(200, 120), ground_height=-0.2))
+    assert img.shape == (120, 200, 3)
+    assert _fraction_not_background(img) > 0.02
+
+
+def test_render_png_failure_keeps_previous_file(tmp_path: Path, offscreen, monkeypatch) -> None:
+    from PIL import Image
+
+    v, tris = _square_tris()
+    dest = render_png(tmp_path / "p.png", v, tris, window_size=(64, 64))
+    before = dest.read_bytes()
+
+    def broken_save(self, fp, *args, **kwargs) -> None:
+        Path(fp).write_bytes(b"\x89PNG half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(Image.Image, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        render_png(dest, v + 1.0, tris, window_size=(64, 64))
+    assert dest.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["p.png"]
+
+
+def _hide_module(monkeypatch: pytest.MonkeyPatch, name: str) -> None:
+    """Make ``importlib.util.find_spec`` report ``name`` as not installed, as on a machine without it."""
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == name else real(n, *a))
+
+
+def _gif_frames(path: Path) -> list[np.ndarray]:
+    from PIL import Image, ImageSequence
+
+    with Image.open(path) as im:
+        return [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(im)]
+
+
+def _falling_cube(n_frames: int) -> tuple[list[np.ndarray], np.ndarray]:
+    v, cells = _cube_tets()
+    return [v + np.array([0.0, 2.0 - 0.5 * k, 0.0]) for k in range(n_frames)], _boundary_triangles(cells)
+
+
+@pytest.mark.parametrize("writer", ["imageio", "pillow"])
+def test_render_gif(tmp_path: Path, offscreen, monkeypatch, writer: str) -> None:
+    if writer == "imageio" and importlib.util.find_spec("imageio") is None:
+        pytest.skip("imageio is not installed")
+    if writer == "pillow":  # the fallback used when imageio is missing
+        _hide_module(monkeypatch, "imageio")
+    frames, faces = _falling_cube(5)
+    heights = np.stack([f[:, 1] for f in frames])
+    out = render_gif(
+        tmp_path / "fall.gif",
+        frames,
+        faces,
+        scalars=heights,
+        fps=10,
+        window_size=(160, 96),
+        ground_height=0.0,
+    )
+    images = _gif_frames(out)
+    assert len(images) == 5
+    assert images[0].shape == (96, 160, 3)
+    assert np.mean(np.any(images[0] != images[-1], axis=-1)) > 0.01
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fall.gif"]
+
+
+def test_render_mp4(tmp_path: Path, offscreen, monkeypatch, caplog) -> None:
+    frames, faces = _falling_cube(4)
+    if importlib.util.find_spec("imageio_ffmpeg") is not None:
+        out = render_mp4(tmp_path / "fall.mp4", frames, faces, window_size=(160, 96))
+        assert out == tmp_path / "fall.mp4" and out.stat().st_size > 1000
+        import imageio.v3 as iio
+
+        assert iio.imread(out).shape == (4, 96, 160, 3)
+    _hide_module(monkeypatch, "imageio_ffmpeg")
+    with caplog.at_level(logging.INFO, logger="energysim.export.render"):
+        assert render_mp4(tmp_path / "none.mp4", frames, faces) is None
+    assert "imageio-ffmpeg" in caplog.text
+    assert not (tmp_path / "none.mp4").exists()
+
+
+def test_render_rejects_bad_input(tmp_path: Path) -> None:
+    v, cells = _cube_tets()
+    faces = _boundary_triangles(cells)
+    with pytest.raises(ValueError, match="empty"):
+        render_png(tmp_path / "x.png", v, np.zeros((0, 3), dtype=int))
+    with pytest.raises(ValueError, match="empty"):
+        render_png(tmp_path / "x.png", np.zeros((0, 3)), faces)
+    with pytest.raises(ValueError, match="outside the valid range"):
+        render_png(tmp_path / "x.png", v, faces + 1)
+    with pytest.raises(ValueError, match=r"\[m, 2\] or \[m, 3\]"):
+        render_png(tmp_path / "x.png", v, cells)
+    with pytest.raises(ValueError, match="NaN"):
+        render_png(tmp_path / "x.png", np.where(v > 0.5, np.nan, v), faces)
+    with pytest.raises(ValueError, match="one value per vertex"):
+        render_png(tmp_path / "x.png", v, faces, scalars=np.zeros(7))
+    with pytest.raises(ValueError, match="window_size"):
+        render_png(tmp_path / "x.png", v, faces, window_size=(0, 10))
+    with pytest.raises(ValueError, match="nothing to render"):
+        render_gif(tmp_path / "x.gif", [], faces)
+    with pytest.raises(ValueError, match="all must match"):
+        render_gif(tmp_path / "x.gif", [v, v[:7]], faces)
+    with pytest.raises(ValueError, match="fps"):
+        render_gif(tmp_path / "x.gif", [v, v], faces, fps=0)
+    with pytest.raises(ValueError, match="one value per vertex"):
+        render_gif(tmp_path / "x.gif", [v, v], faces, scalars=np.zeros((3, 8)))
+    with pytest.raises(ValueError, match="outside the valid range"):
+        render_mp4(tmp_path / "x.mp4", [v, v], faces + 1)
+    assert list(tmp_path.iterdir()) == []
