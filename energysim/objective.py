@@ -23,12 +23,17 @@ class Objective:
             `residual_scale · ∇E` in m/s (the implicit-Euler momentum residual when the inertia
             term is in `terms`).
         action: the step's action, shape `[B, a]`, or None.
+        anchor: positions `[B, n, d]` near the solution, or None. Linear terms (gravity) are
+            evaluated on x − anchor: that changes E by a constant only, but keeps its rounding
+            error proportional to the displacement rather than to the absolute positions, so
+            line searches still see the energy fall when the residual is tiny.
     """
 
     terms: Sequence[EnergyTerm]
     free: Tensor
     residual_scale: Tensor
     action: Tensor | None = None
+    anchor: Tensor | None = None
     energy_evals: int = 0
     grad_evals: int = 0
 
@@ -41,7 +46,10 @@ class Objective:
     def _total(self, x: Tensor) -> Tensor:
         total = None
         for term in self.terms:
-            value = term(x, self.action)
+            if term.is_linear and self.anchor is not None:
+                value = term(x - self.anchor, self.action)
+            else:
+                value = term(x, self.action)
             total = value if total is None else total + value
         if total is None:
             return x.new_zeros(x.shape[0])

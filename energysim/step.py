@@ -77,14 +77,13 @@ def step(
     x_prev, v_prev = x_prev.detach(), v_prev.detach()
     free = scene.free[:, None].to(x_prev.dtype)
     predicted = x_prev + scene.dt * v_prev * free
-    inertia = Inertia(scene.vertex_mass, scene.dt, predicted)
     objective = Objective(
-        terms=[inertia, *scene.terms],
-        free=scene.free,
-        residual_scale=scene.dt / scene.vertex_mass,
-        action=action,
+        terms=list(scene.terms), free=scene.free, residual_scale=scene.dt / scene.vertex_mass, action=action
     )
-    result = (solver or scene.solver).minimize(objective, _warm_start(objective, predicted, scene.dt))
+    start = _warm_start(objective, predicted, scene.dt)
+    objective.terms = [Inertia(scene.vertex_mass, scene.dt, predicted, anchor=start), *scene.terms]
+    objective.anchor = start
+    result = (solver or scene.solver).minimize(objective, start)
     x_next = result.x
     v_next = (x_next - x_prev) / scene.dt
     new_state = torch.cat([x_next.reshape(x_next.shape[0], -1), v_next.reshape(v_next.shape[0], -1)], dim=-1)
@@ -126,6 +125,7 @@ def solve_static(
         free=scene.free,
         residual_scale=scene.dt / scene.vertex_mass,
         action=_check_action(action, batched.shape[0]),
+        anchor=batched,
     )
     result = (solver or scene.solver).minimize(objective, batched)
     return StepResult(state=result.x.reshape(x0.shape), stats=result)

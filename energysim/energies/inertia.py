@@ -10,23 +10,35 @@ from energysim.energies.base import EnergyTerm
 class Inertia(EnergyTerm):
     """½h⁻² ‖x − x̂‖²_M with x̂ = x_n + h v_n, the inertia of one implicit-Euler step.
 
-    Built per step by the step objective, not added to scenes.
+    Built per step by the step objective, not added to scenes. With an `anchor` a, the energy
+    is evaluated as ½h⁻² Σ m (|x − a|² + 2 (x − a)·(a − x̂)), which differs by a constant only
+    but whose rounding error scales with x − a, not with a − x̂: near convergence the line
+    search must resolve energy changes far smaller than the energy itself.
 
     Args:
         vertex_mass: lumped masses, shape `[n]`, in kg.
         dt: time step h in s.
         predicted_positions: x̂, shape `[B, n, d]`, in m.
+        anchor: a, shape `[B, n, d]` (the solver's starting point), or None.
     """
 
-    def __init__(self, vertex_mass: Tensor, dt: float, predicted_positions: Tensor) -> None:
+    def __init__(
+        self, vertex_mass: Tensor, dt: float, predicted_positions: Tensor, anchor: Tensor | None = None
+    ) -> None:
         super().__init__()
         self.vertex_mass = vertex_mass
         self.dt = dt
         self.predicted_positions = predicted_positions
+        self.anchor = anchor
 
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
-        offset = x - self.predicted_positions
-        return 0.5 / self.dt**2 * (self.vertex_mass[:, None] * offset * offset).sum(dim=(-1, -2))
+        weight = 0.5 / self.dt**2 * self.vertex_mass[:, None]
+        if self.anchor is None:
+            offset = x - self.predicted_positions
+            return (weight * offset * offset).sum(dim=(-1, -2))
+        displacement = x - self.anchor
+        lead = self.anchor - self.predicted_positions
+        return (weight * displacement * (displacement + 2.0 * lead)).sum(dim=(-1, -2))
 
     def hessian_diagonal(self) -> Tensor:
         """The (constant, diagonal) Hessian M/h², per vertex, shape `[n]`, in kg/s²."""

@@ -1,14 +1,23 @@
 """Pure material densities: energy per unit rest volume as a function of F.
 
-The stable neo-Hookean model of Smith, de Goes and Kim (2018), in the form the authors use in
-production (the optional log(I_C + 1) term dropped):
+The stable neo-Hookean model of Smith, de Goes and Kim (2018), "Stable Neo-Hookean Flesh
+Simulation", in the paper's full form:
 
-    ψ(F) = μ/2 (I_C − 3) + λ'/2 (J − α)² − μ²/(2λ'),   λ' = λ + μ,   α = 1 + μ/λ'
+    ψ(F) = μ'/2 (I_C − 3) + λ'/2 (J − α)² − μ'/2 log(I_C + 1) + c,
+    μ' = 4μ/3,   λ' = λ + 5μ/6,   α = 1 + 3μ'/(4λ'),
 
-It is a polynomial in F (no log J, no F⁻¹, no SVD), so it is finite for every F, including
-inverted (J < 0) and flat (J = 0) elements, which it pushes back towards J = α > 0. With these
-λ' and α the rest state is stress-free (P(I) = 0) and the Hessian at F = I equals linear
-elasticity with Lamé parameters (μ, λ). The constant makes ψ(I) = 0.
+with c making ψ(I) = 0. With these μ', λ' and α the rest state is stress-free and the Hessian
+at F = I equals linear elasticity with Lamé parameters (μ, λ). Nothing in it is singular (no
+log J, no F⁻¹, no SVD): it is finite for every F, including inverted (J < 0) and flat (J = 0)
+elements, which it pushes back towards J > 0. The log(I_C + 1) term matters: without it,
+F = 0 is a local minimum in 3D (the gradient vanishes there and the Hessian is μI), and a
+scrambled or inverted body can collapse to a point; with it the origin is only a saddle.
+
+Since λ'(α − 1) = 3μ'/4, the same function is
+    ψ = μ'/2 s − 3μ'/4 v + λ'/2 v² − μ'/2 log1p(s/4),   s = I_C − 3,  v = J − 1,
+and it is evaluated so, with s and v expanded in the displacement gradient G = F − I. The
+first form subtracts terms of size μ from each other to leave an energy of size μ|G|²; its
+rounding error would hide the energy decrease that line searches must see near convergence.
 
 2D elements use plane strain: the 2×2 F is embedded as diag(F, 1).
 """
@@ -40,6 +49,26 @@ def _determinant(F: Tensor) -> Tensor:
     )
 
 
+def smith_parameters(mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(μ', λ', α) of the stable neo-Hookean energy from the Lamé parameters (μ, λ), in Pa, Pa, 1."""
+    mu_smith = 4.0 / 3.0 * mu
+    lam_smith = lam + 5.0 / 6.0 * mu
+    return mu_smith, lam_smith, 1.0 + 0.75 * mu_smith / lam_smith
+
+
+def _invariant_excesses(F: Tensor) -> tuple[Tensor, Tensor]:
+    """I_C − 3 and J − 1, from G = F − I so that neither loses digits near F = I."""
+    dim = F.shape[-1]
+    G = F - torch.eye(dim, dtype=F.dtype, device=F.device)
+    trace = G.diagonal(dim1=-2, dim2=-1).sum(-1)
+    # plane strain: the out-of-plane stretch is 1, so G has no third row or column
+    stretch_excess = 2.0 * trace + (G * G).sum(dim=(-1, -2))
+    if dim == 2:
+        return stretch_excess, trace + _determinant(G)
+    second_invariant = 0.5 * (trace**2 - (G * G.transpose(-1, -2)).sum(dim=(-1, -2)))
+    return stretch_excess, trace + second_invariant + _determinant(G)
+
+
 def stable_neo_hookean_density(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     """Stable neo-Hookean energy per unit rest volume, in J/m³.
 
@@ -50,27 +79,25 @@ def stable_neo_hookean_density(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     Returns:
         ψ(F), shape `[...]`; zero at F = I and at any rotation.
     """
-    dim = F.shape[-1]
-    lam_shifted = lam + mu
-    alpha = 1.0 + mu / lam_shifted
-    # plane strain: the out-of-plane stretch is 1, which adds 1 to I_C and nothing to J
-    stretch_invariant = (F * F).sum(dim=(-1, -2)) + (3 - dim)
-    J = _determinant(F)
+    mu_smith, lam_smith, _ = smith_parameters(mu, lam)
+    stretch_excess, volume_excess = _invariant_excesses(F)
     return (
-        0.5 * mu * (stretch_invariant - 3.0)
-        + 0.5 * lam_shifted * (J - alpha) ** 2
-        - 0.5 * mu**2 / lam_shifted
+        0.5 * mu_smith * stretch_excess
+        - 0.75 * mu_smith * volume_excess
+        + 0.5 * lam_smith * volume_excess**2
+        - 0.5 * mu_smith * torch.log1p(0.25 * stretch_excess)
     )
 
 
 def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     """∂²ψ/∂F² of `stable_neo_hookean_density`, the exact (unprojected) tangent stiffness.
 
-    A closed form for speed only: the tests check it against autograd. With vec(F) row-major,
+    A closed form for speed only: the tests check it against autograd. With f = vec(F)
+    row-major and I_C counting the plane-strain 1 in 2D,
 
-        ∂²ψ/∂F² = μ I + λ' vec(cof F) vec(cof F)ᵀ + λ' (J − α) ∂²J/∂F²,
+        ∂²ψ/∂F² = μ'(1 − 1/(I_C + 1)) I + 2μ'/(I_C + 1)² f fᵀ + λ' g gᵀ + λ'(J − α) ∂²J/∂F²,
 
-    where ∂²J/∂F_ij∂F_kl = ε_ikp ε_jlq F_pq in 3D, and ε_ik ε_jl in 2D.
+    with g = vec(cof F), and ∂²J/∂F_ij∂F_kl = ε_ikp ε_jlq F_pq in 3D, ε_ik ε_jl in 2D.
 
     Args:
         F: shape `[..., d, d]`; mu, lam: Pa, broadcastable to `[...]`.
@@ -79,9 +106,8 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
         shape `[..., d*d, d*d]`, in Pa.
     """
     dim = F.shape[-1]
-    lam_shifted = lam + mu
-    alpha = 1.0 + mu / lam_shifted
-    J = _determinant(F)
+    mu_smith, lam_smith, alpha = smith_parameters(mu, lam)
+    stretch_excess, volume_excess = _invariant_excesses(F)
     flat = F.reshape(*F.shape[:-2], dim * dim)
     if dim == 2:
         cofactor = torch.stack([F[..., 1, 1], -F[..., 1, 0], -F[..., 0, 1], F[..., 0, 0]], dim=-1)
@@ -95,12 +121,18 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
     index, sign = _DET_HESSIAN[dim]
     padded = torch.cat([flat, torch.ones_like(flat[..., :1])], dim=-1)
     det_hessian = (padded[..., index.to(F.device)] * sign.to(F)).reshape(*flat.shape, dim * dim)
-    mu_, lam_, J_, alpha_ = (
+    inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
+    J_minus_alpha = volume_excess + 1.0 - alpha
+    mu_, lam_, inv_, jma_ = (
         torch.as_tensor(t, dtype=F.dtype, device=F.device)[..., None, None]
-        for t in (mu, lam_shifted, J, alpha)
+        for t in (mu_smith, lam_smith, inverse, J_minus_alpha)
     )
     eye = torch.eye(dim * dim, dtype=F.dtype, device=F.device)
-    return mu_ * eye + lam_ * (cofactor[..., :, None] * cofactor[..., None, :] + (J_ - alpha_) * det_hessian)
+    return (
+        mu_ * (1.0 - inv_) * eye
+        + 2.0 * mu_ * inv_**2 * flat[..., :, None] * flat[..., None, :]
+        + lam_ * (cofactor[..., :, None] * cofactor[..., None, :] + jma_ * det_hessian)
+    )
 
 
 def _det_hessian_tables() -> dict[int, tuple[Tensor, Tensor]]:

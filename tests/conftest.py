@@ -1,0 +1,45 @@
+"""Shared fixtures: small scenes, rigid motions, and a fixed random seed."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import energysim as es
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)
+
+
+def random_rotation(dim: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A proper rotation (det +1), shape `[d, d]`."""
+    if dim == 2:
+        angle = float(torch.rand((), generator=generator)) * 2 * math.pi
+        c, s = math.cos(angle), math.sin(angle)
+        return torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    q, r = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=generator))
+    q = q * torch.sign(torch.diagonal(r))
+    if torch.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def small_box(dim: int, cells: int = 2) -> es.SimplexMesh:
+    """A unit box (square in 2D) with `cells` cells per side."""
+    if dim == 2:
+        return es.TriMesh.box(size=(1.0, 1.0), cells=(cells, cells))
+    return es.TetMesh.box(size=(1.0, 1.0, 1.0), cells=(cells, cells, cells))
+
+
+def rigid_alignment_error(x: torch.Tensor, rest: torch.Tensor) -> float:
+    """RMS distance between `x` and `rest` after the best proper rigid motion (Kabsch), in m."""
+    xc, rc = x - x.mean(0), rest - rest.mean(0)
+    u, _, vt = torch.linalg.svd(rc.T @ xc)
+    d = torch.ones(x.shape[1], dtype=x.dtype)
+    d[-1] = torch.sign(torch.linalg.det(u @ vt))
+    rotation = u @ torch.diag(d) @ vt
+    return float(((rc @ rotation - xc) ** 2).sum(-1).mean().sqrt())
