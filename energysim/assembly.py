@@ -8,6 +8,7 @@ CG takes many of them per Newton iteration.
 
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -140,10 +141,10 @@ def assemble(
         rows, cols = pattern.row_indices, pattern.col_indices
         eliminated = fixed_dofs[rows] | fixed_dofs[cols]
         values = torch.where(eliminated, (rows == cols).to(dtype), values)
-    return torch.sparse_csr_tensor(
-        pattern.crow_indices,
-        pattern.col_indices,
-        values,
-        (pattern.size, pattern.size),
-        check_invariants=False,
-    )
+    size = (pattern.size, pattern.size)
+    with warnings.catch_warnings():
+        # torch flags CSR as beta on first use; the operations used here (build, mat-vec) are stable
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(
+            pattern.crow_indices, pattern.col_indices, values, size, check_invariants=False
+        )

@@ -99,7 +99,9 @@ def test_closed_form_stress_hessian_matches_autograd(dim):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_element_hessian_blocks_match_autograd_and_finite_differences(dim):
     mesh = small_box(dim)
-    term = bound_term(es.NeoHookean(torch.linspace(1e4, 1e5, mesh.num_elements, dtype=torch.float64), 0.45), mesh)
+    term = bound_term(
+        es.NeoHookean(torch.linspace(1e4, 1e5, mesh.num_elements, dtype=torch.float64), 0.45), mesh
+    )
     x = (mesh.vertices + 0.1 * torch.randn_like(mesh.vertices))[None].repeat(2, 1, 1)
     closed = term.element_hessian(x[:, term.element_vertices], None)
     auto = autograd_element_hessian(term, x, None)

@@ -362,3 +362,21 @@ def test_render_rejects_bad_input(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="outside the valid range"):
         render_mp4(tmp_path / "x.mp4", [v, v], faces + 1)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_new_series_removes_stale_frames_of_the_same_name(tmp_path):
+    import numpy as np
+
+    from energysim.export import VTKSeries
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+    cells = np.array([[0, 1, 2, 3]])
+    long_run = VTKSeries(tmp_path, cells)
+    for k in range(3):
+        long_run.write(0.1 * k, vertices)
+    other = VTKSeries(tmp_path, cells, name="other")
+    other.write(0.0, vertices)
+    short_run = VTKSeries(tmp_path, cells)
+    short_run.write(0.0, vertices)
+    assert sorted(p.name for p in tmp_path.glob("frame_*.vtu")) == ["frame_00000.vtu"]
+    assert (tmp_path / "other_00000.vtu").exists()

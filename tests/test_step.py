@@ -50,7 +50,9 @@ def test_two_mass_spring_decays_by_the_exact_implicit_euler_factor(steps_per_per
     mass, stiffness = 2.0, 50.0
     omega = math.sqrt(2 * stiffness / mass)
     dt = 2 * math.pi / omega / steps_per_period
-    scene = es.Scene(mesh, dt=dt, gravity=None, vertex_mass=torch.full((4,), mass), solver=es.NewtonCG(tol=1e-12))
+    scene = es.Scene(
+        mesh, dt=dt, gravity=None, vertex_mass=torch.full((4,), mass), solver=es.NewtonCG(tol=1e-12)
+    )
     scene.add(es.Springs(edges=[[0, 1]], stiffness=stiffness))
     x0 = mesh.vertices.clone()
     x0[1, 0] += 0.05
@@ -82,8 +84,10 @@ def total_energy(scene, nh, state):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_total_energy_never_increases_in_a_free_oscillation(dim):
-    mesh = es.TetMesh.box(size=(1.0, 0.2, 0.2), cells=(8, 2, 2)) if dim == 3 else es.TriMesh.box(
-        size=(1.0, 0.2), cells=(10, 2)
+    mesh = (
+        es.TetMesh.box(size=(1.0, 0.2, 0.2), cells=(8, 2, 2))
+        if dim == 3
+        else es.TriMesh.box(size=(1.0, 0.2), cells=(10, 2))
     )
     gravity = (0.0, -9.81, 0.0) if dim == 3 else (0.0, -9.81)
     scene = es.Scene(mesh, dt=1 / 60, gravity=gravity, solver=es.NewtonCG(tol=1e-9))
@@ -133,7 +137,9 @@ def test_element_block_and_autograd_hessian_products_agree():
     scene.fix([0, 1])
     x = (mesh.vertices + 0.05 * torch.randn_like(mesh.vertices))[None].repeat(2, 1, 1)
     inertia = es.Inertia(scene.vertex_mass, scene.dt, x + 0.01)
-    objective = es.Objective([inertia, *scene.terms], free=scene.free, residual_scale=scene.dt / scene.vertex_mass)
+    objective = es.Objective(
+        [inertia, *scene.terms], free=scene.free, residual_scale=scene.dt / scene.vertex_mass
+    )
     v = torch.randn_like(x)
     blocks = objective.hessian(x, use_element_blocks=True).matvec(v)
     auto = objective.hessian(x, use_element_blocks=False).matvec(v)

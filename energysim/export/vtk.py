@@ -7,6 +7,7 @@ may be torch tensors or numpy arrays; this module never imports the solver.
 
 from __future__ import annotations
 
+import glob
 import logging
 import math
 import os
@@ -217,6 +218,10 @@ class VTKSeries:
         self.cells = check_index_array(cells, None, (3, 4))
         self.frames: list[tuple[float, Path]] = []
         self.folder.mkdir(parents=True, exist_ok=True)
+        # A new series replaces an old one of the same name: frames from an earlier, longer run
+        # would otherwise linger beside the new .pvd and be mistaken for part of it.
+        for stale in self.folder.glob(f"{glob.escape(name)}_[0-9][0-9][0-9][0-9][0-9].vtu"):
+            stale.unlink()
 
     @property
     def pvd_path(self) -> Path:
