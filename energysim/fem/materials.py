@@ -14,10 +14,11 @@ F = 0 is a local minimum in 3D (the gradient vanishes there and the Hessian is �
 scrambled or inverted body can collapse to a point; with it the origin is only a saddle.
 
 Since λ'(α − 1) = 3μ'/4, the same function is
-    ψ = μ'/2 s − 3μ'/4 v + λ'/2 v² − μ'/2 log1p(s/4),   s = I_C − 3,  v = J − 1,
-and it is evaluated so, with s and v expanded in the displacement gradient G = F − I. The
-first form subtracts terms of size μ from each other to leave an energy of size μ|G|²; its
-rounding error would hide the energy decrease that line searches must see near convergence.
+    ψ = 3μ'/4 (s/2 − v) + λ'/2 v² + μ'/2 f(s/4),   s = I_C − 3,  v = J − 1,  f(y) = y − log1p(y),
+and it is evaluated so, with s/2 − v = |G|²/2 − I₂(G) − det G written in the displacement
+gradient G = F − I: every term is then of second order in G. The first form subtracts terms of
+size μ (and the obvious rewrite, terms of size μ|G|) from each other to leave an energy of size
+μ|G|²; that rounding error would hide the energy decrease line searches must see near convergence.
 
 2D elements use plane strain: the 2×2 F is embedded as diag(F, 1).
 """
@@ -56,17 +57,34 @@ def smith_parameters(mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return mu_smith, lam_smith, 1.0 + 0.75 * mu_smith / lam_smith
 
 
-def _invariant_excesses(F: Tensor) -> tuple[Tensor, Tensor]:
-    """I_C − 3 and J − 1, from G = F − I so that neither loses digits near F = I."""
+def _invariant_excesses(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """I_C − 3, J − 1 and (I_C − 3)/2 − (J − 1), from G = F − I so that none loses digits near F = I.
+
+    The last one has no first-order part: |G|²/2 − I₂(G) − det G (in 2D, |G|²/2 − det G).
+    """
     dim = F.shape[-1]
     G = F - torch.eye(dim, dtype=F.dtype, device=F.device)
     trace = G.diagonal(dim1=-2, dim2=-1).sum(-1)
+    squares = 0.5 * (G * G).sum(dim=(-1, -2))
+    determinant = _determinant(G)
     # plane strain: the out-of-plane stretch is 1, so G has no third row or column
-    stretch_excess = 2.0 * trace + (G * G).sum(dim=(-1, -2))
     if dim == 2:
-        return stretch_excess, trace + _determinant(G)
-    second_invariant = 0.5 * (trace**2 - (G * G.transpose(-1, -2)).sum(dim=(-1, -2)))
-    return stretch_excess, trace + second_invariant + _determinant(G)
+        higher = determinant
+    else:
+        higher = 0.5 * (trace**2 - (G * G.transpose(-1, -2)).sum(dim=(-1, -2))) + determinant
+    return 2.0 * (trace + squares), trace + higher, squares - higher
+
+
+def _y_minus_log1p(y: Tensor) -> Tensor:
+    """y − log(1 + y) for y > −1, accurate for small y where the difference cancels."""
+    small = y.abs() < 1e-2
+    ys = torch.where(small, y, torch.zeros_like(y))
+    # Taylor series y²/2 − y³/3 + y⁴/4 − …; ten terms reach double precision for |y| < 1e-2
+    series = torch.zeros_like(y)
+    for k in range(11, 1, -1):
+        series = ys * ((-1) ** k / k + series)
+    yl = torch.where(small, torch.ones_like(y), y)
+    return torch.where(small, ys * series, yl - torch.log1p(yl))
 
 
 def stable_neo_hookean_density(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
@@ -80,12 +98,11 @@ def stable_neo_hookean_density(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
         ψ(F), shape `[...]`; zero at F = I and at any rotation.
     """
     mu_smith, lam_smith, _ = smith_parameters(mu, lam)
-    stretch_excess, volume_excess = _invariant_excesses(F)
+    stretch_excess, volume_excess, second_order = _invariant_excesses(F)
     return (
-        0.5 * mu_smith * stretch_excess
-        - 0.75 * mu_smith * volume_excess
+        0.75 * mu_smith * second_order
         + 0.5 * lam_smith * volume_excess**2
-        - 0.5 * mu_smith * torch.log1p(0.25 * stretch_excess)
+        + 0.5 * mu_smith * _y_minus_log1p(0.25 * stretch_excess)
     )
 
 
@@ -107,7 +124,7 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
     """
     dim = F.shape[-1]
     mu_smith, lam_smith, alpha = smith_parameters(mu, lam)
-    stretch_excess, volume_excess = _invariant_excesses(F)
+    stretch_excess, volume_excess, _ = _invariant_excesses(F)
     flat = F.reshape(*F.shape[:-2], dim * dim)
     if dim == 2:
         cofactor = torch.stack([F[..., 1, 1], -F[..., 1, 0], -F[..., 0, 1], F[..., 0, 0]], dim=-1)

@@ -121,20 +121,23 @@ def backtracking_line_search(
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
     Near convergence the energy change falls below the energy's rounding error, so a decrease
-    within a few ulps of |E| counts as no increase; otherwise Newton would stall short of
-    tight tolerances.
+    within a few ulps of |E| counts as no increase; and where even the full step's predicted
+    decrease is below that level, the energy cannot judge the step at all: it is taken whole and
+    flagged, so that the caller can judge it by the gradient instead.
 
     Args:
         x, gradient, direction: shape `[B, n, d]`; energy, initial_step: shape `[B]`.
 
     Returns:
-        step fractions `[B]` (0 where no step was accepted) and the energies there `[B]`.
+        step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
+        entries were taken unjudged `[B]`.
     """
     slope = (gradient * direction).sum(dim=(-1, -2))
     step = initial_step.clone()
-    accepted = torch.zeros_like(step, dtype=torch.bool)
-    new_energy = energy.clone()
     rounding = 64 * torch.finfo(x.dtype).eps * energy.abs()
+    unjudged = -slope * initial_step <= rounding
+    accepted = unjudged.clone()
+    new_energy = energy.clone()
     for _ in range(max_halvings):
         trial = objective.energy(x + step[:, None, None] * direction)
         ok = (
@@ -148,4 +151,4 @@ def backtracking_line_search(
             break
         step = torch.where(accepted, step, 0.5 * step)
     step = torch.where(accepted, step, torch.zeros_like(step))
-    return step, new_energy
+    return step, new_energy, unjudged

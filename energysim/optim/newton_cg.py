@@ -102,15 +102,24 @@ class NewtonCG(Solver):
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
-            step, new_energy = backtracking_line_search(
+            step, _, unjudged = backtracking_line_search(
                 objective, x, energy, gradient, direction, objective.max_step(x, direction)
             )
             failed = active & (step == 0)
             stalled = stalled | (failed & steepest)
             steepest = failed
-            x = x + step[:, None, None] * direction
-            energy, gradient = objective.energy_and_gradient(x)
-            residual = objective.residual(gradient)
+            x_new = x + step[:, None, None] * direction
+            new_energy, new_gradient = objective.energy_and_gradient(x_new)
+            new_residual = objective.residual(new_gradient)
+            # a step too small for the energy to judge stands only if the residual fell; if not,
+            # this is as far as the precision goes: keep the better point and stop that entry
+            worse = active & unjudged & (new_residual >= residual)
+            stalled = stalled | worse
+            keep = worse[:, None, None]
+            x = torch.where(keep, x, x_new)
+            gradient = torch.where(keep, gradient, new_gradient)
+            energy = torch.where(worse, energy, new_energy)
+            residual = torch.where(worse, residual, new_residual)
         return self.finish(objective, x, residual, iterations, hvps)
 
     def _preconditioner(self, operator: HessianOperator, x: Tensor, objective: Objective):
