@@ -29,6 +29,8 @@ class SparsityPattern:
         block_positions: for each element group, where each block entry lands in `values`,
             shape `[B·m·(kd)²]`.
         diagonal_positions: where each diagonal entry lands, shape `[B·n·d]`.
+        vertex_block_positions: where the d×d diagonal block of every vertex is stored, shape
+            `[B·n·d·d]` (row-major within a block), to read block-Jacobi blocks straight from values.
         size: B·n·d.
     """
 
@@ -37,6 +39,7 @@ class SparsityPattern:
     row_indices: Tensor
     block_positions: tuple[Tensor, ...]
     diagonal_positions: Tensor
+    vertex_block_positions: Tensor
     size: int
 
 
@@ -57,6 +60,9 @@ def build_pattern(
     for elements in element_groups:
         dofs = _dof_indices(elements, dim)
         keys.append((dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1))
+    # every vertex's own d×d block is present, so these keys are in the pattern
+    vertex_dofs = torch.arange(size, device=device).reshape(num_vertices, dim)
+    keys.append((vertex_dofs[:, :, None] * size + vertex_dofs[:, None, :]).reshape(-1))
     unique, inverse = torch.unique(torch.cat(keys), return_inverse=True)
     nnz = unique.numel()
     rows, cols = unique // size, unique % size
@@ -71,12 +77,15 @@ def build_pattern(
         return (positions[None, :] + nnz * batch_offsets[:, None]).reshape(-1)
 
     pieces = torch.split(inverse, [key.numel() for key in keys])
+    vertex_blocks = pieces[-1]
+    pieces = pieces[:-1]
     return SparsityPattern(
         crow_indices=crow_batched,
         col_indices=col_batched,
         row_indices=row_batched,
         block_positions=tuple(batched_positions(piece) for piece in pieces[1:]),
         diagonal_positions=batched_positions(pieces[0]),
+        vertex_block_positions=batched_positions(vertex_blocks),
         size=size * batch,
     )
 

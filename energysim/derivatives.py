@@ -126,6 +126,10 @@ class HessianOperator:
         Products from `extra_products` are not included: they have no cheap diagonal.
         """
         batch, n, dim = like.shape
+        matrix = self.matrix(like)
+        if matrix is not None:  # read them from the assembled values (fixed DOFs already identity)
+            pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+            return matrix.values()[pattern.vertex_block_positions].reshape(batch, n, dim, dim)
         eye = torch.eye(dim, dtype=like.dtype, device=like.device)
         out = like.new_zeros(batch, n, dim, dim)
         if self.diagonal is not None:

@@ -13,7 +13,9 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
     "${pip[@]}" "torch>=2.3"
   else
-    "${pip[@]}" "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
+    # a local wheel folder (pip's find-links) first; PyTorch's CPU index only if that has none
+    "${pip[@]}" "torch==2.13.0+cpu" 2>/dev/null \
+      || "${pip[@]}" "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
   fi
 fi
 "${pip[@]}" -e ".[dev]"

@@ -62,7 +62,41 @@ class ElementEnergy(EnergyTerm):
         raise NotImplementedError  # pragma: no cover - abstract
 
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
-        return self.element_energy(x[:, self.element_vertices], action).sum(dim=-1)
+        return self.element_energy(gather_vertices(x, self.element_vertices), action).sum(dim=-1)
+
+
+class _GatherVertices(torch.autograd.Function):
+    # x[:, index] backpropagates through an accumulating index_put, several times slower than
+    # a scatter-add on flat DOF numbers; this backward is that scatter-add, itself differentiable
+    # (its derivative is the gather again), so double backward keeps working.
+
+    @staticmethod
+    def forward(ctx, x: Tensor, dofs: Tensor) -> Tensor:  # noqa: ANN001 - autograd's signature
+        ctx.save_for_backward(dofs)
+        ctx.size = x.shape[1] * x.shape[2]
+        return x.reshape(x.shape[0], -1).index_select(1, dofs.reshape(-1)).reshape(x.shape[0], *dofs.shape)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: ANN001
+        (dofs,) = ctx.saved_tensors
+        batch = grad.shape[0]
+        flat = grad.new_zeros(batch, ctx.size).index_add(1, dofs.reshape(-1), grad.reshape(batch, -1))
+        return flat.reshape(batch, -1, dofs.shape[-1]), None
+
+
+def gather_vertices(x: Tensor, element_vertices: Tensor) -> Tensor:
+    """`x[:, element_vertices]` with a fast backward.
+
+    Args:
+        x: positions, shape `[B, n, d]`.
+        element_vertices: shape `[m, k]`.
+
+    Returns:
+        shape `[B, m, k, d]`.
+    """
+    dim = x.shape[-1]
+    dofs = element_vertices[..., None] * dim + torch.arange(dim, device=x.device)
+    return _GatherVertices.apply(x, dofs)
 
 
 def as_parameter(value: float | Tensor, name: str) -> Tensor:

@@ -45,12 +45,15 @@ class NeoHookean(ElementEnergy):
         self.register_buffer("element_vertices", mesh.elements)
         self.register_buffer("rest_edge_inverse", rest_edge_inverse)
         self.register_buffer("rest_volume", rest_volume)
-        # ∂vec(F)/∂x_e, constant per element: F_kj = Σ_b x_bk ∇N_bj gives ∇N_bj δ_kl, shape [m, d·d, (d+1)·d]
+        # S = ∂vec(F)/∂x_e, constant per element: F_kj = Σ_b x_bk ∇N_bj gives ∇N_bj δ_kl, shape
+        # [m, d·d, (d+1)·d]. With √V folded in, K_e = (√V S)ᵀ ∂²ψ/∂F² (√V S) needs no extra pass.
         dim = mesh.dim
         grad_n = shape_gradients(rest_edge_inverse)
         eye = torch.eye(dim, dtype=grad_n.dtype)
         strain_map = (eye[None, :, None, None, :] * grad_n.transpose(1, 2)[:, None, :, :, None]).flatten(3)
-        self.register_buffer("strain_map", strain_map.flatten(1, 2).contiguous(), persistent=False)
+        weighted = strain_map.flatten(1, 2) * rest_volume.sqrt()[:, None, None]
+        self.register_buffer("weighted_strain_map", weighted.contiguous(), persistent=False)
+        self.register_buffer("weighted_strain_map_t", weighted.transpose(1, 2).contiguous(), persistent=False)
 
     def lame(self) -> tuple[Tensor, Tensor]:
         """(μ, λ) in Pa, scalars or shape `[m]`."""
@@ -70,5 +73,4 @@ class NeoHookean(ElementEnergy):
         mu, lam = self.lame()
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
         stiffness = stable_neo_hookean_stress_hessian(F, mu, lam)
-        blocks = self.strain_map.transpose(1, 2) @ (stiffness @ self.strain_map)
-        return blocks * self.rest_volume[:, None, None]
+        return self.weighted_strain_map_t @ (stiffness @ self.weighted_strain_map)

@@ -134,22 +134,26 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
         cofactor = torch.stack(
             [torch.linalg.cross(c1, c2), torch.linalg.cross(c2, c0), torch.linalg.cross(c0, c1)], dim=-1
         ).reshape(flat.shape)
+    # Built with few full-size temporaries: at 50k elements each one is tens of MB, and their
+    # allocation, not the arithmetic, dominated. Both rank-one terms come from one batched product.
+    shape = flat.shape[:-1]
+    inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
+    mu_smith, lam_smith = (
+        torch.as_tensor(t, dtype=F.dtype, device=F.device).expand(shape) for t in (mu_smith, lam_smith)
+    )
+    rank_one = torch.stack(
+        [cofactor * lam_smith.sqrt()[..., None], flat * ((2.0 * mu_smith).sqrt() * inverse)[..., None]],
+        dim=-1,
+    )
+    hessian = rank_one @ rank_one.transpose(-1, -2)
+    hessian.diagonal(dim1=-2, dim2=-1).add_((mu_smith * (1.0 - inverse))[..., None])
     # every entry of ∂²J/∂F² is ±1 (2D) or ± one entry of F (3D): a signed gather, no einsum
     index, sign = _DET_HESSIAN[dim]
     padded = torch.cat([flat, torch.ones_like(flat[..., :1])], dim=-1)
-    det_hessian = (padded[..., index.to(F.device)] * sign.to(F)).reshape(*flat.shape, dim * dim)
-    inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
-    J_minus_alpha = volume_excess + 1.0 - alpha
-    mu_, lam_, inv_, jma_ = (
-        torch.as_tensor(t, dtype=F.dtype, device=F.device)[..., None, None]
-        for t in (mu_smith, lam_smith, inverse, J_minus_alpha)
-    )
-    eye = torch.eye(dim * dim, dtype=F.dtype, device=F.device)
-    return (
-        mu_ * (1.0 - inv_) * eye
-        + 2.0 * mu_ * inv_**2 * flat[..., :, None] * flat[..., None, :]
-        + lam_ * (cofactor[..., :, None] * cofactor[..., None, :] + jma_ * det_hessian)
-    )
+    det_hessian = padded.index_select(-1, index.to(F.device)).mul_(sign.to(F))
+    weight = lam_smith * (volume_excess + 1.0 - alpha)  # λ'(J − α)
+    hessian.view(*shape, -1).addcmul_(det_hessian, weight[..., None])
+    return hessian
 
 
 def _det_hessian_tables() -> dict[int, tuple[Tensor, Tensor]]:

@@ -9,6 +9,7 @@ to the largest one every term allows (`max_step`) and backtracked until the ener
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -30,9 +31,8 @@ def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> tupl
     diagonal's absolute value, so the preconditioner stays SPD and CG stays well defined.
     """
     blocks = operator.vertex_blocks(like)
-    free = operator.free
     eye = torch.eye(like.shape[-1], dtype=like.dtype, device=like.device)
-    blocks = torch.where(free[None, :, None, None], blocks, eye)
+    blocks = torch.where(operator.free[None, :, None, None], blocks, eye)
     factor, info = torch.linalg.cholesky_ex(blocks)
     bad = info != 0
     if bad.any():
@@ -122,7 +122,10 @@ class NewtonCG(Solver):
             residual = torch.where(worse, residual, new_residual)
         return self.finish(objective, x, residual, iterations, hvps)
 
-    def _preconditioner(self, operator: HessianOperator, x: Tensor, objective: Objective):
+    def _preconditioner(
+        self, operator: HessianOperator, x: Tensor, objective: Objective
+    ) -> Callable[[Tensor], Tensor]:
+        """z = P⁻¹ r: per-vertex block-Jacobi, or the lumped-mass scaling h/m when there are no blocks."""
         if self.preconditioner == "block_jacobi" and (operator.blocks or operator.diagonal is not None):
             inverse, _ = block_jacobi_preconditioner(operator, x)
             return lambda r: (inverse @ r[..., None])[..., 0]
@@ -133,44 +136,47 @@ class NewtonCG(Solver):
         self,
         operator: HessianOperator,
         rhs: Tensor,
-        precondition,
+        precondition: Callable[[Tensor], Tensor],
         eta: Tensor,
         active: Tensor,
         objective: Objective,
     ) -> Tensor:
-        """Approximately solve H p = rhs, per batch entry; entries not `active` get p = 0."""
+        """Approximately solve H p = rhs, per batch entry; entries not `active` get p = 0.
+
+        CG takes most of a Newton step's time, in many small tensor operations per iteration: the
+        loop below keeps them few (fused in-place updates, squared norms, one sync per iteration).
+        """
         solution = torch.zeros_like(rhs)
         remainder = rhs.clone()
         z = precondition(remainder)
         search = z.clone()
         rz = _dot(remainder, z)
-        target = eta * torch.sqrt(_dot(rhs, rhs))
+        target_squared = eta**2 * _dot(rhs, rhs)
         # no need to solve the linear model more finely than the velocity tolerance itself
         velocity_target = 0.1 * self.tol
+        scale = objective.residual_scale[:, None]
         running = active.clone()
-        first = torch.ones_like(active)
+        first = True
         for _ in range(self.max_cg_iter):
-            if not running.any():
-                break
             product = operator.matvec(search)
             curvature = _dot(search, product)
             negative = running & (curvature <= 0)
             if negative.any():
                 # Steihaug: stop along negative curvature; with no iterate yet, go down the gradient
-                solution = torch.where((negative & first)[:, None, None], search, solution)
+                if first:
+                    solution = torch.where(negative[:, None, None], search, solution)
                 running = running & ~negative
-            alpha = torch.where(
-                running, rz / torch.where(running, curvature, torch.ones_like(curvature)), 0.0
-            )
-            solution = solution + alpha[:, None, None] * search
-            remainder = remainder - alpha[:, None, None] * product
-            first = first & ~running
-            norm = torch.sqrt(_dot(remainder, remainder))
-            velocity = objective.residual(remainder)
-            running = running & (norm > target) & (velocity > velocity_target)
+            alpha = (rz / curvature.where(running, torch.ones_like(curvature))) * running
+            solution.addcmul_(search, alpha[:, None, None])
+            remainder.addcmul_(product, alpha[:, None, None], value=-1.0)
+            first = False
+            velocity = (remainder * scale).abs().amax(dim=(-1, -2))
+            running = running & (_dot(remainder, remainder) > target_squared) & (velocity > velocity_target)
+            if not running.any():
+                break
             z = precondition(remainder)
             rz_new = _dot(remainder, z)
-            beta = torch.where(running, rz_new / torch.where(rz == 0, torch.ones_like(rz), rz), 0.0)
-            search = z + beta[:, None, None] * search
+            beta = (rz_new / rz.where(rz != 0, torch.ones_like(rz))) * running
+            search = z.addcmul_(search, beta[:, None, None])
             rz = rz_new
         return solution
