@@ -4,14 +4,27 @@ One implicit-Euler step is the minimisation
 x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x) by a pluggable optimizer.
 """
 
-from energysim.energies import ElementEnergy, EnergyTerm, Gravity, Inertia, NeoHookean, Springs
+from energysim.energies import (
+    ActuatedSprings,
+    ElementEnergy,
+    EnergyTerm,
+    Gravity,
+    Inertia,
+    NeoHookean,
+    Springs,
+)
+from energysim.implicit import GradientError
 from energysim.mesh import SimplexMesh, TetMesh, TriMesh, load_mesh
 from energysim.objective import Objective
 from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
+from energysim.rollout import rollout
 from energysim.scene import Scene
 from energysim.step import StepResult, solve_static, step, timestep
 
 __all__ = [
+    "ActuatedSprings",
+    "GradientError",
+    "rollout",
     "LBFGS",
     "Adam",
     "ConvergenceError",

@@ -120,6 +120,20 @@ class HessianOperator:
             out = out + product(v_free)
         return out * free + v * (1 - free)
 
+    def dense(self, like: Tensor) -> Tensor | None:
+        """The matrix of every batch entry as a dense `[B, n·d, n·d]` tensor (for small systems), or
+        None when some term has no assembled blocks."""
+        matrix = self.matrix(like)
+        if matrix is None or self.extra_products:
+            return None
+        batch, n, dim = like.shape
+        size = n * dim
+        pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+        out = like.new_zeros(batch, size, size)
+        rows, cols = pattern.row_indices, pattern.col_indices
+        out.index_put_((rows // size, rows % size, cols % size), matrix.values())
+        return out
+
     def vertex_blocks(self, like: Tensor) -> Tensor:
         """The d×d diagonal block of H at every vertex, shape `[B, n, d, d]`, for block-Jacobi.
 

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from energysim.derivatives import energy_and_gradient
 from energysim.energies.inertia import Inertia
+from energysim.implicit import ImplicitStep, differentiable_parameters, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
 from energysim.scene import Scene
@@ -55,44 +56,113 @@ def _warm_start(objective: Objective, predicted: Tensor, dt: float) -> Tensor:
     return predicted - (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
 
 
+GRAD_MODES = ("implicit", "unrolled")
+
+
 def step(
-    scene: Scene, state: Tensor, action: Tensor | None = None, solver: Solver | None = None
+    scene: Scene,
+    state: Tensor,
+    action: Tensor | None = None,
+    solver: Solver | None = None,
+    *,
+    grad_mode: str = "implicit",
+    adjoint_rtol: float = 1e-10,
 ) -> StepResult:
     """Advance `state` by one implicit-Euler step of `scene.dt` and report the solve.
+
+    The step is differentiable in `state`, `action` and every scene tensor that requires grad
+    (Young's modulus, Poisson's ratio, spring stiffness and rest length, masses, gravity). With
+    `grad_mode="implicit"` backward solves one linear system at the solution (implicit function
+    theorem) and keeps nothing of the optimizer's iterations; `"unrolled"` records Newton
+    iterations instead (memory grows with them; a reference for checks). A solver with
+    `strict=True` refuses to differentiate a step that did not converge; otherwise backward warns.
 
     Args:
         scene: the model.
         state: `[x.flatten(), v.flatten()]`, shape `[2·num_dofs]` or `[B, 2·num_dofs]`, in m and m/s.
         action: shape `[a]` or `[B, a]`, or None.
         solver: overrides `scene.solver` for this step.
+        grad_mode: "implicit" or "unrolled".
+        adjoint_rtol: relative tolerance of the adjoint CG solve in backward.
 
     Returns:
         the new state (same shape, device and dtype as `state`) and the solver's statistics.
     """
+    if grad_mode not in GRAD_MODES:
+        raise ValueError(f"grad_mode must be one of {GRAD_MODES}, got {grad_mode!r}")
     x_prev, v_prev = scene.split_state(state)
     if not torch.isfinite(state).all():
         raise ValueError("state has non-finite entries")
     _match_scene(scene, state)
     action = _check_action(action, x_prev.shape[0])
-    x_prev, v_prev = x_prev.detach(), v_prev.detach()
-    free = scene.free[:, None].to(x_prev.dtype)
-    predicted = x_prev + scene.dt * v_prev * free
-    objective = Objective(
-        terms=list(scene.terms), free=scene.free, residual_scale=scene.dt / scene.vertex_mass, action=action
+    solver = solver or scene.solver
+    parameters = differentiable_parameters([scene])
+    wants_grad = torch.is_grad_enabled() and (
+        state.requires_grad or (action is not None and action.requires_grad) or bool(parameters)
     )
-    start = _warm_start(objective, predicted, scene.dt)
-    objective.terms = [Inertia(scene.vertex_mass, scene.dt, predicted, anchor=start), *scene.terms]
-    objective.anchor = start
-    result = (solver or scene.solver).minimize(objective, start)
-    x_next = result.x
+
+    def solve() -> SolverResult:
+        xp, vp = x_prev.detach(), v_prev.detach()
+        free = scene.free[:, None].to(xp.dtype)
+        predicted = xp + scene.dt * vp * free
+        with torch.no_grad():
+            objective = Objective(
+                terms=list(scene.terms),
+                free=scene.free,
+                residual_scale=scene.dt / scene.vertex_mass.detach(),
+                action=None if action is None else action.detach(),
+            )
+            start = _warm_start(objective, predicted, scene.dt)
+            objective.terms = [
+                Inertia(scene.vertex_mass.detach(), scene.dt, predicted, anchor=start),
+                *scene.terms,
+            ]
+            objective.anchor = start
+            return solver.minimize(objective, start)
+
+    if not wants_grad:
+        stats = solve()
+        x_next = stats.x
+    elif grad_mode == "implicit":
+        context = {
+            "run": solve,
+            "terms": list(scene.terms),
+            "vertex_mass": scene.vertex_mass,
+            "free": scene.free,
+            "dt": scene.dt,
+            "strict": solver.strict,
+            "adjoint_rtol": adjoint_rtol,
+            "direct_max_dofs": getattr(solver, "direct_max_dofs", 600),
+        }
+        x_next = ImplicitStep.apply(context, x_prev, v_prev, action, *parameters)
+        stats = context["result"]
+    else:
+        x_next, iterations, residual = unrolled_step(
+            list(scene.terms),
+            scene.vertex_mass,
+            scene.dt,
+            x_prev,
+            v_prev,
+            scene.free,
+            action,
+            tol=solver.tol,
+            max_iter=solver.max_iter,
+        )
+        stats = solver.finish_unrolled(x_next, residual, iterations)
     v_next = (x_next - x_prev) / scene.dt
     new_state = torch.cat([x_next.reshape(x_next.shape[0], -1), v_next.reshape(v_next.shape[0], -1)], dim=-1)
-    return StepResult(state=new_state.reshape(state.shape), stats=result)
+    return StepResult(state=new_state.reshape(state.shape), stats=stats)
 
 
-def timestep(scene: Scene, state: Tensor, action: Tensor | None = None) -> Tensor:
-    """The new state after one step, like `nimble.timestep(world, state, action)`; see `step`."""
-    return step(scene, state, action).state
+def timestep(
+    scene: Scene, state: Tensor, action: Tensor | None = None, *, grad_mode: str = "implicit"
+) -> Tensor:
+    """The new state after one step, like `nimble.timestep(world, state, action)`; see `step`.
+
+    Differentiable: `loss.backward()` through any number of steps reaches the initial state, the
+    actions and the scene's parameters that require grad.
+    """
+    return step(scene, state, action, grad_mode=grad_mode).state
 
 
 def solve_static(

@@ -160,3 +160,20 @@ def test_gravity_energy_is_minus_m_g_dot_x():
     gravity.bind(mesh, mass)
     x = torch.randn(1, mesh.num_vertices, 3, dtype=torch.float64)
     assert float(gravity(x)) == pytest.approx(float((mass * 9.81 * x[0, :, 1]).sum()), rel=1e-12)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_closed_form_spring_hessians_match_autograd(dim):
+    mesh = small_box(dim)
+    edges = mesh.edges()
+    x = (mesh.vertices + 0.2 * torch.randn_like(mesh.vertices))[None].repeat(2, 1, 1)
+    x[0, edges[0, 1]] = x[0, edges[0, 0]] + 1e-3  # one nearly collapsed spring
+    action = torch.tensor([[0.7, -0.4], [1.5, 0.2]], dtype=torch.float64)  # 1.5 is clamped to 1
+    plain = bound_term(es.Springs(stiffness=torch.rand(edges.shape[0], dtype=torch.float64) + 0.5), mesh)
+    actuated = bound_term(
+        es.ActuatedSprings(edges, actuators=torch.arange(edges.shape[0]) % 2, stiffness=40.0), mesh
+    )
+    for term in (plain, actuated):
+        closed = term.element_hessian(x[:, term.element_vertices], action)
+        auto = autograd_element_hessian(term, x, action)
+        assert torch.allclose(closed, auto, rtol=1e-9, atol=1e-9 * float(auto.abs().max()))

@@ -3,7 +3,8 @@
 from energysim.energies.base import ElementEnergy, EnergyTerm
 from energysim.energies.gravity import Gravity
 from energysim.energies.inertia import Inertia
+from energysim.energies.muscles import ActuatedSprings
 from energysim.energies.neo_hookean import NeoHookean
 from energysim.energies.springs import Springs
 
-__all__ = ["ElementEnergy", "EnergyTerm", "Gravity", "Inertia", "NeoHookean", "Springs"]
+__all__ = ["ActuatedSprings", "ElementEnergy", "EnergyTerm", "Gravity", "Inertia", "NeoHookean", "Springs"]

@@ -14,6 +14,32 @@ def spring_energy(length: Tensor, stiffness: Tensor, rest_length: Tensor) -> Ten
     return 0.5 * stiffness * (length - rest_length) ** 2
 
 
+def spring_length(element_positions: Tensor, rest_length: Tensor) -> tuple[Tensor, Tensor]:
+    """Edge vectors `[..., s, d]` and lengths `[..., s]`.
+
+    A tiny floor under the squared length keeps a collapsed spring's gradient finite.
+    """
+    delta = element_positions[..., 1, :] - element_positions[..., 0, :]
+    floor = 1e-30 * (1.0 + rest_length.detach()) ** 2
+    return delta, torch.sqrt((delta * delta).sum(dim=-1) + floor)
+
+
+def spring_hessian_blocks(delta: Tensor, length: Tensor, stiffness: Tensor, rest_length: Tensor) -> Tensor:
+    """Exact Hessian of ½k(ℓ − ℓ₀)² per spring, shape `[..., s, 2d, 2d]`, in N/m.
+
+    A closed form for speed (tests check it against autograd): with n the unit edge vector, the
+    vertex block is K = k [n nᵀ + (1 − ℓ₀/ℓ)(I − n nᵀ)] and the spring's is [[K, −K], [−K, K]].
+    """
+    dim = delta.shape[-1]
+    direction = delta / length[..., None]
+    outer = direction[..., :, None] * direction[..., None, :]
+    eye = torch.eye(dim, dtype=delta.dtype, device=delta.device)
+    stiffness = torch.as_tensor(stiffness, dtype=delta.dtype).expand(length.shape)
+    tangential = (1.0 - rest_length / length)[..., None, None]
+    block = stiffness[..., None, None] * (outer + tangential * (eye - outer))
+    return torch.cat([torch.cat([block, -block], dim=-1), torch.cat([-block, block], dim=-1)], dim=-2)
+
+
 class Springs(ElementEnergy):
     """Hookean springs: Σ_s ½ k_s (|x_j − x_i| − ℓ₀_s)².
 
@@ -58,8 +84,10 @@ class Springs(ElementEnergy):
         self.register_buffer("rest_length", rest_length)
 
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        delta = element_positions[..., 1, :] - element_positions[..., 0, :]
-        # a tiny floor keeps the gradient of the length finite for a collapsed spring
-        floor = 1e-30 * (1.0 + self.rest_length.detach()) ** 2
-        length = torch.sqrt((delta * delta).sum(dim=-1) + floor)
+        _, length = spring_length(element_positions, self.rest_length)
         return spring_energy(length, self.stiffness, self.rest_length)
+
+    def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """Exact per-spring Hessian blocks `[B, s, 2d, 2d]` (closed form; see `spring_hessian_blocks`)."""
+        delta, length = spring_length(element_positions, self.rest_length)
+        return spring_hessian_blocks(delta, length, self.stiffness, self.rest_length)

@@ -82,6 +82,25 @@ class Solver:
         """Minimise `objective` from `x0` (shape `[B, n, d]`); fixed vertices keep their `x0` value."""
         raise NotImplementedError
 
+    def finish_unrolled(self, x: Tensor, residual: float, iterations: int) -> SolverResult:
+        """The report of an unrolled (recorded) Newton solve; warns or raises like `finish`."""
+        result = SolverResult(
+            x=x.detach(),
+            iterations=iterations,
+            grad_evals=iterations + 1,
+            hvp_evals=0,
+            energy_evals=0,
+            residual=residual,
+            converged=residual < self.tol,
+            solver=f"unrolled Newton (tol of {self.name})",
+            tol=self.tol,
+        )
+        if not result.converged:
+            if self.strict:
+                raise ConvergenceError(result.summary())
+            warnings.warn(result.summary(), ConvergenceWarning, stacklevel=3)
+        return result
+
     def finish(
         self, objective: Objective, x: Tensor, residual: Tensor, iterations: int, hvps: int
     ) -> SolverResult:

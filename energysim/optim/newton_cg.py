@@ -56,6 +56,9 @@ class NewtonCG(Solver):
             takes products from them; "autograd" takes every product by double backward
             (slower; the plain reference).
         preconditioner: "block_jacobi" (per-vertex d×d blocks) or "none" (mass scaling only).
+        direct_max_dofs: systems of at most this many DOFs per batch entry are solved exactly by a
+            dense Cholesky factorisation instead of CG (far cheaper for small bodies, where CG is
+            all per-iteration overhead); where H is not positive definite, truncated CG takes over.
     """
 
     max_iter: int = 50
@@ -63,6 +66,7 @@ class NewtonCG(Solver):
     forcing: float = 0.01
     hessian: str = "elements"
     preconditioner: str = "block_jacobi"
+    direct_max_dofs: int = 600
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -91,9 +95,13 @@ class NewtonCG(Solver):
             precondition = self._preconditioner(operator, x, objective)
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
-            direction = self._truncated_cg(
-                operator, -gradient, precondition, eta, active & ~steepest, objective
-            )
+            wanted = active & ~steepest
+            direction, solved = self._direct(operator, -gradient, x, wanted)
+            if (wanted & ~solved).any():
+                iterative = self._truncated_cg(
+                    operator, -gradient, precondition, eta, wanted & ~solved, objective
+                )
+                direction = torch.where(solved[:, None, None], direction, iterative)
             hvps += operator.products
             direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
             # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient
@@ -121,6 +129,27 @@ class NewtonCG(Solver):
             energy = torch.where(worse, energy, new_energy)
             residual = torch.where(worse, residual, new_residual)
         return self.finish(objective, x, residual, iterations, hvps)
+
+    def _direct(
+        self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Exact Newton directions by dense Cholesky where the system is small and H is positive
+        definite; returns them and which batch entries they solved."""
+        none = torch.zeros_like(wanted)
+        if x.shape[1] * x.shape[2] > self.direct_max_dofs or self.hessian != "elements":
+            return torch.zeros_like(rhs), none
+        dense = operator.dense(x)
+        if dense is None:
+            return torch.zeros_like(rhs), none
+        factor, info = torch.linalg.cholesky_ex(dense)
+        solved = wanted & (info == 0)
+        if not solved.any():
+            return torch.zeros_like(rhs), none
+        safe = torch.where(
+            (info == 0)[:, None, None], factor, torch.eye(dense.shape[-1], dtype=x.dtype, device=x.device)
+        )
+        direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), safe).reshape(rhs.shape)
+        return direction * solved[:, None, None], solved
 
     def _preconditioner(
         self, operator: HessianOperator, x: Tensor, objective: Objective

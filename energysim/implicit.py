@@ -1,0 +1,293 @@
+"""The one autograd.Function of the project: an implicit-Euler step differentiated by the implicit
+function theorem.
+
+At the converged x* the step objective's gradient vanishes, g(x*; θ) = ∇ₓE(x*; θ) = 0, so for a
+loss L and any input θ (previous positions and velocities, the action, material parameters,
+masses, gravity):
+
+    H u = ∂L/∂x*,     dL/dθ = −uᵀ ∂g/∂θ,     H = ∇²ₓE(x*), the true (unprojected) Hessian.
+
+Backward is one linear solve (CG on Hessian-vector products, pinned DOFs eliminated) and one
+vector-Jacobian product; the optimizer's iterations are never recorded, so a step keeps only
+its inputs and x* for backward, whatever solver ran the forward.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from energysim.derivatives import HessianOperator
+from energysim.energies.base import EnergyTerm
+from energysim.energies.inertia import Inertia
+from energysim.objective import Objective
+from energysim.optim.base import ConvergenceError, ConvergenceWarning, SolverResult
+from energysim.optim.newton_cg import block_jacobi_preconditioner
+
+
+class GradientError(RuntimeError):
+    """The step's gradient cannot be computed: its Hessian is not positive definite at x*, or the
+    adjoint solve did not converge."""
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(dim=(-1, -2))
+
+
+def conjugate_gradient(
+    operator: HessianOperator,
+    rhs: Tensor,
+    precondition: Callable[[Tensor], Tensor],
+    *,
+    rtol: float = 1e-10,
+    max_iter: int = 10000,
+) -> tuple[Tensor, int]:
+    """Solve H u = rhs for an SPD H, per batch entry, to ‖r‖ ≤ rtol ‖rhs‖.
+
+    Raises:
+        GradientError: on non-positive curvature (H is not positive definite) or no convergence.
+    """
+    solution = torch.zeros_like(rhs)
+    remainder = rhs.clone()
+    z = precondition(remainder)
+    search = z.clone()
+    rz = _dot(remainder, z)
+    target = rtol**2 * _dot(rhs, rhs)
+    running = _dot(remainder, remainder) > target
+    for iteration in range(1, max_iter + 1):
+        if not running.any():
+            return solution, iteration - 1
+        product = operator.matvec(search)
+        curvature = _dot(search, product)
+        if (running & (curvature <= 0)).any():
+            raise GradientError(
+                "the step's Hessian is not positive definite at its solution, so x* is not a strict "
+                "minimum and the implicit gradient does not exist (buckling, or a free rigid mode in "
+                "a static solve)"
+            )
+        alpha = (rz / curvature.where(running, torch.ones_like(curvature))) * running
+        solution.addcmul_(search, alpha[:, None, None])
+        remainder.addcmul_(product, alpha[:, None, None], value=-1.0)
+        running = running & (_dot(remainder, remainder) > target)
+        z = precondition(remainder)
+        rz_new = _dot(remainder, z)
+        beta = (rz_new / rz.where(rz != 0, torch.ones_like(rz))) * running
+        search = z.addcmul_(search, beta[:, None, None])
+        rz = rz_new
+    raise GradientError(f"the adjoint CG solve did not reach rtol {rtol:g} in {max_iter} iterations")
+
+
+def solve_adjoint(
+    operator: HessianOperator, rhs: Tensor, x: Tensor, rtol: float, direct_max_dofs: int
+) -> Tensor:
+    """u = H⁻¹ rhs at the step's solution: dense Cholesky for small systems, else block-Jacobi CG.
+
+    Raises:
+        GradientError: H is not positive definite.
+    """
+    dense = operator.dense(x) if x.shape[1] * x.shape[2] <= direct_max_dofs else None
+    if dense is not None:
+        factor, info = torch.linalg.cholesky_ex(dense)
+        if bool((info != 0).any()):
+            raise GradientError(
+                "the step's Hessian is not positive definite at its solution, so x* is not a strict "
+                "minimum and the implicit gradient does not exist"
+            )
+        return torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
+    inverse, _ = block_jacobi_preconditioner(operator, x)
+    solution, _ = conjugate_gradient(operator, rhs, lambda r: (inverse @ r[..., None])[..., 0], rtol=rtol)
+    return solution
+
+
+def _step_terms(
+    terms: Sequence[EnergyTerm], vertex_mass: Tensor, dt: float, x_prev: Tensor, v_prev: Tensor, free: Tensor
+) -> list[EnergyTerm]:
+    predicted = x_prev + dt * v_prev * free[:, None].to(v_prev.dtype)
+    return [Inertia(vertex_mass, dt, predicted), *terms]
+
+
+class ImplicitStep(torch.autograd.Function):
+    """x* = argmin_x E(x; x_n, v_n, action, θ), differentiable in every tensor argument.
+
+    `apply(context, x_prev, v_prev, action, *parameters)`; `context` carries the scene pieces
+    (terms, masses, free mask, h) and the solver; its `result` slot receives the solver report.
+    """
+
+    @staticmethod
+    def forward(
+        ctx, context: dict, x_prev: Tensor, v_prev: Tensor, action: Tensor | None, *parameters: Tensor
+    ):  # noqa: ANN001
+        run: Callable[[], SolverResult] = context["run"]
+        with torch.no_grad():
+            result = run()
+        context["result"] = result
+        ctx.context = context
+        ctx.converged = result.converged
+        ctx.summary = result.summary()
+        ctx.parameter_count = len(parameters)
+        ctx.save_for_backward(result.x, x_prev, v_prev, *(() if action is None else (action,)), *parameters)
+        ctx.has_action = action is not None
+        return result.x.clone()
+
+    @staticmethod
+    def backward(ctx, grad_x: Tensor):  # noqa: ANN001, ANN205
+        context = ctx.context
+        saved = ctx.saved_tensors
+        x_star, x_prev, v_prev = saved[:3]
+        action = saved[3] if ctx.has_action else None
+        parameters = saved[3 + ctx.has_action :]
+        if not ctx.converged:
+            if context["strict"]:
+                raise ConvergenceError("refusing to differentiate an unconverged step: " + ctx.summary)
+            warnings.warn(
+                "differentiating an unconverged step; its gradient is approximate: " + ctx.summary,
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+        free = context["free"]
+        free_f = free[:, None].to(grad_x.dtype)
+        dt = context["dt"]
+        terms_now = _step_terms(
+            context["terms"], context["vertex_mass"].detach(), dt, x_prev.detach(), v_prev.detach(), free
+        )
+        objective = Objective(
+            terms_now, free, dt / context["vertex_mass"].detach(), None if action is None else action.detach()
+        )
+        with torch.no_grad():
+            operator = objective.hessian(x_star.detach())
+            adjoint = solve_adjoint(
+                operator, grad_x * free_f, x_star, context["adjoint_rtol"], context["direct_max_dofs"]
+            )
+        # −uᵀ ∂g/∂θ for every input, from one vector-Jacobian product of g = ∇ₓE(x*; θ)
+        wanted = [
+            ctx.needs_input_grad[1],
+            ctx.needs_input_grad[2],
+            ctx.has_action and ctx.needs_input_grad[3],
+        ]
+        with torch.enable_grad():
+            xp = x_prev.detach().requires_grad_(wanted[0])
+            vp = v_prev.detach().requires_grad_(wanted[1])
+            act = None if action is None else action.detach().requires_grad_(bool(wanted[2]))
+            terms = _step_terms(context["terms"], context["vertex_mass"], dt, xp, vp, free)
+            x = x_star.detach().requires_grad_(True)
+            # pinned vertices sit at x_prev, and through the elastic terms they pull on their free
+            # neighbours: taking them from xp puts that coupling, −uᵀ ∂g_free/∂x_pinned, in the VJP
+            at = x * free_f + xp * (1 - free_f) if wanted[0] else x
+
+            def energy(y: Tensor) -> Tensor:
+                return sum(term(y, act) for term in terms)
+
+            (gradient,) = torch.autograd.grad(energy(at).sum(), x, create_graph=True)
+            inputs = [xp, vp, *(() if act is None else (act,)), *parameters]
+            needs = [t.requires_grad for t in inputs]
+            grads = [None] * len(inputs)
+            chosen = [t for t, need in zip(inputs, needs, strict=True) if need]
+            if chosen and gradient.requires_grad:
+                computed = torch.autograd.grad(gradient, chosen, grad_outputs=-adjoint, allow_unused=True)
+                it = iter(computed)
+                grads = [next(it) if need else None for need in needs]
+        grad_x_prev, grad_v_prev = grads[0], grads[1]
+        # pinned vertices stay where x_prev put them: their gradient passes straight through
+        passthrough = grad_x * (1 - free_f)
+        grad_x_prev = passthrough if grad_x_prev is None else grad_x_prev + passthrough
+        rest = grads[2:]
+        grad_action = rest.pop(0) if ctx.has_action else None
+        return (None, grad_x_prev if ctx.needs_input_grad[1] else None, grad_v_prev, grad_action, *rest)
+
+
+def differentiable_parameters(modules: Sequence[torch.nn.Module]) -> list[Tensor]:
+    """Every tensor in `modules`' buffers and parameters that requires grad, each once."""
+    found: dict[int, Tensor] = {}
+    for module in modules:
+        for tensor in [*module.buffers(), *module.parameters()]:
+            if tensor.requires_grad:
+                found.setdefault(id(tensor), tensor)
+    return list(found.values())
+
+
+def unrolled_step(
+    terms: Sequence[EnergyTerm],
+    vertex_mass: Tensor,
+    dt: float,
+    x_prev: Tensor,
+    v_prev: Tensor,
+    free: Tensor,
+    action: Tensor | None,
+    *,
+    tol: float,
+    max_iter: int = 50,
+) -> tuple[Tensor, int, float]:
+    """x* by Newton iterations whose every operation autograd records: the unrolled reference.
+
+    Each iteration solves H p = −g by CG on double-backward Hessian-vector products, to a tight
+    tolerance, with the CG iterations recorded too. Memory grows with every iteration; use it
+    to check `ImplicitStep` on small scenes, or where an unrolled gradient is wanted.
+
+    Returns:
+        x* `[B, n, d]` (with its graph), the Newton iterations taken, and the final residual (m/s).
+    """
+    free_f = free[:, None].to(x_prev.dtype)
+    step_terms = _step_terms(terms, vertex_mass, dt, x_prev, v_prev, free)
+    scale = (dt / vertex_mass)[:, None]
+
+    def energy(y: Tensor) -> Tensor:
+        return sum(term(y, action) for term in step_terms)
+
+    x = step_terms[0].predicted_positions
+    residual = previous = float("inf")
+    for iteration in range(max_iter + 1):
+        (gradient,) = torch.autograd.grad(energy(x).sum(), x, create_graph=True)
+        gradient = gradient * free_f
+        residual = float((gradient.detach() * scale.detach()).abs().amax())
+        # stop at the tolerance, or where rounding stops Newton's progress (every recorded
+        # iteration costs memory, and past that point it only records noise)
+        if residual < tol or iteration == max_iter or (iteration >= 2 and residual > 0.5 * previous):
+            return x, iteration, residual
+        previous = residual
+
+        def product(v: Tensor, x: Tensor = x, gradient: Tensor = gradient) -> Tensor:
+            (hv,) = torch.autograd.grad(gradient, x, grad_outputs=v, create_graph=True)
+            return hv * free_f + v * (1 - free_f)
+
+        # plain CG, recorded: unrolled all the way down
+        direction = torch.zeros_like(gradient)
+        remainder = -gradient
+        search = remainder
+        rr = _dot(remainder, remainder)
+        target = 1e-26 * rr
+        # CG solves an n-DOF system in n iterations in exact arithmetic; a few more absorb rounding
+        for _ in range(x.shape[1] * x.shape[2] + 10):
+            if bool((rr <= target).all()):
+                break
+            hs = product(search)
+            curvature = _dot(search, hs)
+            if bool((curvature <= 0).any()):  # Steihaug: keep the descent direction found so far
+                if not bool(direction.detach().abs().max() > 0):
+                    direction = -gradient
+                break
+            alpha = rr / curvature
+            direction = direction + alpha[:, None, None] * search
+            remainder = remainder - alpha[:, None, None] * hs
+            rr_new = _dot(remainder, remainder)
+            search = remainder + (rr_new / rr)[:, None, None] * search
+            rr = rr_new
+        # backtracking chosen off the record (a constant to autograd); near the solution the
+        # steps are whole, so the recorded derivative tends to the exact one
+        with torch.no_grad():
+            current = energy(x.detach()).sum()
+            slope = float((gradient.detach() * direction.detach()).sum())
+            fraction = 1.0
+            rounding = 64 * torch.finfo(x.dtype).eps * abs(float(current))
+            for _ in range(40):
+                trial = energy(x.detach() + fraction * direction.detach()).sum()
+                if (
+                    bool(torch.isfinite(trial))
+                    and float(trial) <= float(current) + 1e-4 * fraction * slope + rounding
+                ):
+                    break
+                fraction *= 0.5
+        x = x + fraction * direction
+    return x, max_iter, residual
