@@ -21,6 +21,16 @@ from energysim.energies.base import ElementEnergy, EnergyTerm
 EnergyFn = Callable[[Tensor], Tensor]
 
 
+def _private_graph() -> torch.autograd.graph.saved_tensors_hooks:
+    """Saved-tensor hooks that keep tensors as they are, shadowing any outer ones.
+
+    The solvers' own derivative evaluations build and consume a graph at once. Inside a
+    checkpointed region (`torch.utils.checkpoint`), the outer hooks would replace those saved
+    tensors by placeholders, and reading them back would recompute the whole region, recursively.
+    """
+    return torch.autograd.graph.saved_tensors_hooks(lambda tensor: tensor, lambda tensor: tensor)
+
+
 def energy_and_gradient(energy: EnergyFn, x: Tensor) -> tuple[Tensor, Tensor]:
     """E(x) and ∇E(x).
 
@@ -31,7 +41,7 @@ def energy_and_gradient(energy: EnergyFn, x: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         energies `[B]` (detached) and gradients `[B, n, d]` in N.
     """
-    with torch.enable_grad():
+    with torch.enable_grad(), _private_graph():
         x = x.detach().requires_grad_(True)
         value = energy(x)
         (gradient,) = torch.autograd.grad(value.sum(), x)
@@ -40,7 +50,7 @@ def energy_and_gradient(energy: EnergyFn, x: Tensor) -> tuple[Tensor, Tensor]:
 
 def hessian_vector_product(energy: EnergyFn, x: Tensor, v: Tensor) -> Tensor:
     """H(x) v by double backward; H is never formed. Shapes as `x`; units N/m × units of `v`."""
-    with torch.enable_grad():
+    with torch.enable_grad(), _private_graph():
         x = x.detach().requires_grad_(True)
         (gradient,) = torch.autograd.grad(energy(x).sum(), x, create_graph=True)
         (product,) = torch.autograd.grad(gradient, x, grad_outputs=v)
@@ -53,7 +63,7 @@ def autograd_element_hessian(term: ElementEnergy, x: Tensor, action: Tensor | No
     Elements are independent, so column j of every block comes from one backward pass of the
     j-th component of the per-element gradients: k·d passes in all, whatever m is.
     """
-    with torch.enable_grad():
+    with torch.enable_grad(), _private_graph():
         element_positions = x.detach()[:, term.element_vertices].requires_grad_(True)
         batch, count, corners, dim = element_positions.shape
         energy = term.element_energy(element_positions, action).sum()

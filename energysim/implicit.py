@@ -237,6 +237,8 @@ def unrolled_step(
         return sum(term(y, action) for term in step_terms)
 
     x = step_terms[0].predicted_positions
+    if not x.requires_grad:  # the state is a constant; only parameters carry gradients
+        x = x.detach().requires_grad_(True)
     residual = previous = float("inf")
     for iteration in range(max_iter + 1):
         (gradient,) = torch.autograd.grad(energy(x).sum(), x, create_graph=True)
@@ -252,12 +254,13 @@ def unrolled_step(
             (hv,) = torch.autograd.grad(gradient, x, grad_outputs=v, create_graph=True)
             return hv * free_f + v * (1 - free_f)
 
-        # plain CG, recorded: unrolled all the way down
+        # CG preconditioned by the (constant) inertia diagonal h²/m, recorded: unrolled all the way down
+        mass_scale = (dt**2 / vertex_mass.detach())[:, None]
         direction = torch.zeros_like(gradient)
         remainder = -gradient
-        search = remainder
-        rr = _dot(remainder, remainder)
-        target = 1e-26 * rr
+        search = remainder * mass_scale
+        rr = _dot(remainder, search)
+        target = 1e-20 * rr
         # CG solves an n-DOF system in n iterations in exact arithmetic; a few more absorb rounding
         for _ in range(x.shape[1] * x.shape[2] + 10):
             if bool((rr <= target).all()):
@@ -271,8 +274,9 @@ def unrolled_step(
             alpha = rr / curvature
             direction = direction + alpha[:, None, None] * search
             remainder = remainder - alpha[:, None, None] * hs
-            rr_new = _dot(remainder, remainder)
-            search = remainder + (rr_new / rr)[:, None, None] * search
+            z = remainder * mass_scale
+            rr_new = _dot(remainder, z)
+            search = z + (rr_new / rr)[:, None, None] * search
             rr = rr_new
         # backtracking chosen off the record (a constant to autograd); near the solution the
         # steps are whole, so the recorded derivative tends to the exact one

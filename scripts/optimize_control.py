@@ -67,7 +67,7 @@ def run(scene: es.Scene, steps: int = 30, iterations: int = 80, lr: float = 0.1)
         optimizer.zero_grad()
         states = es.rollout(scene, scene.initial_state(), torch.tanh(raw))
         distance = (tip(scene, states[-1]) - target).norm()
-        distances.append(float(distance))
+        distances.append(float(distance.detach()))
         if distances[-1] < 2e-3:
             break
         (distance + 1e-3 * raw.square().mean()).backward()
