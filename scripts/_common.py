@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -200,3 +201,36 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     ]
     lines += [f"  {key}: {value:.6g}" for key, value in figures.items()]
     return "\n".join(lines)
+
+
+def script_main(
+    argv: list[str] | None,
+    doc: str,
+    name: str,
+    *,
+    seconds: float,
+    resolution: int,
+    build_scene: Callable[[int, float, str, float], es.Scene],
+    run: Callable[..., Rollout],
+    measure: Callable[[Rollout], dict[str, float]],
+    check: Callable[[Rollout], None],
+) -> int:
+    """The command line every scene script shares: build, run, write, render, summarise, check.
+
+    Returns 0 when the run passes `check`, 1 otherwise (the failed predicate is printed).
+    """
+    args = make_parser(doc, name, seconds=seconds, resolution=resolution).parse_args(argv)
+    scene = build_scene(args.resolution, args.dt, args.solver, args.tol)
+    rollout = run(scene, args.seconds, args.out, frames_every=args.frames_every)
+    outputs = [rollout.vtk]
+    if not args.no_render:
+        outputs += render(rollout, scene, args.out, name)
+    print(summary(name, scene, rollout, measure(rollout)))
+    print("  wrote " + ", ".join(str(p) for p in outputs))
+    try:
+        check(rollout)
+    except AssertionError as err:
+        print(f"CHECK FAILED: {err}", file=sys.stderr)
+        return 1
+    print("  check passed")
+    return 0

@@ -25,7 +25,14 @@ import sys
 from pathlib import Path
 
 import torch
-from _common import Rollout, deformation, gravity, make_parser, make_solver, render, simulate, summary
+from _common import (
+    Rollout,
+    deformation,
+    gravity,
+    make_solver,
+    script_main,
+    simulate,
+)
 from torch import Tensor
 
 import energysim as es
@@ -153,21 +160,17 @@ def check(rollout: Rollout) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point; returns 0 when the run passes its check."""
-    args = make_parser(__doc__, NAME, seconds=2.0, resolution=4).parse_args(argv)
-    scene = build_scene(args.resolution, args.dt, args.solver, args.tol)
-    rollout = run(scene, args.seconds, args.out, frames_every=args.frames_every)
-    outputs = [rollout.vtk]
-    if not args.no_render:
-        outputs += render(rollout, scene, args.out, NAME)
-    print(summary(NAME, scene, rollout, measure(rollout)))
-    print("  wrote " + ", ".join(str(p) for p in outputs))
-    try:
-        check(rollout)
-    except AssertionError as err:
-        print(f"CHECK FAILED: {err}", file=sys.stderr)
-        return 1
-    print("  check passed")
-    return 0
+    return script_main(
+        argv,
+        __doc__,
+        NAME,
+        seconds=2.0,
+        resolution=4,
+        build_scene=build_scene,
+        run=run,
+        measure=measure,
+        check=check,
+    )
 
 
 if __name__ == "__main__":

@@ -5,16 +5,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
-from energysim.energies.springs import spring_energy, spring_hessian_blocks, spring_length
+from energysim.energies.springs import Springs, spring_energy, spring_hessian_blocks, spring_length
 from energysim.mesh import SimplexMesh
 
 
-class ActuatedSprings(ElementEnergy):
+class ActuatedSprings(Springs):
     """Springs whose rest length is ℓ₀ (1 − c·a), a = the action of the spring's actuator.
 
     Each spring belongs to one actuator; `action[:, j]` drives actuator j and is clamped to
     [−1, 1], so the rest length stays within ℓ₀ (1 ± c): a contraction c < 1 keeps it positive.
+    Without an action they are plain springs.
 
     Args:
         edges: vertex pairs, shape `[s, 2]`.
@@ -32,13 +32,12 @@ class ActuatedSprings(ElementEnergy):
         max_contraction: float = 0.3,
         rest_length: float | Tensor | None = None,
     ) -> None:
-        super().__init__()
+        if edges is None:
+            raise ValueError("actuated springs need explicit edges")
+        super().__init__(edges, stiffness, rest_length)
         if not 0 < max_contraction < 1:
             raise ValueError(f"max_contraction must lie in (0, 1), got {max_contraction}")
-        self._edges = torch.as_tensor(edges, dtype=torch.int64)
         self.register_buffer("actuators", torch.as_tensor(actuators, dtype=torch.int64))
-        self.register_buffer("stiffness", as_parameter(stiffness, "stiffness"))
-        self._rest_length = None if rest_length is None else as_parameter(rest_length, "rest_length")
         self.max_contraction = max_contraction
 
     @property
@@ -47,25 +46,10 @@ class ActuatedSprings(ElementEnergy):
         return int(self.actuators.max()) + 1
 
     def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
-        edges = self._edges
-        if edges.ndim != 2 or edges.shape[1] != 2 or edges.shape[0] == 0:
-            raise ValueError(f"edges must have shape [s, 2] with s > 0, got {tuple(edges.shape)}")
-        out_of_range = ((edges < 0) | (edges >= mesh.num_vertices)).any(dim=1)
-        if out_of_range.any():
-            index = torch.nonzero(out_of_range).reshape(-1)[:10].tolist()
-            raise ValueError(f"springs {index} name vertices outside [0, {mesh.num_vertices})")
-        if tuple(self.actuators.shape) != (edges.shape[0],) or bool((self.actuators < 0).any()):
-            raise ValueError(f"actuators must be non-negative integers of shape [{edges.shape[0]}]")
-        check_per_element(self.stiffness, edges.shape[0], "stiffness", "spring")
-        check_positive(self.stiffness, "stiffness", "N/m")
-        if self._rest_length is None:
-            rest_length = (mesh.vertices[edges[:, 1]] - mesh.vertices[edges[:, 0]]).norm(dim=-1)
-        else:
-            rest_length = self._rest_length
-            check_per_element(rest_length, edges.shape[0], "rest_length", "spring")
-            check_positive(rest_length, "rest_length", "m")
-        self.register_buffer("element_vertices", edges.contiguous())
-        self.register_buffer("rest_length", rest_length)
+        super().bind(mesh, vertex_mass)
+        count = self.element_vertices.shape[0]
+        if tuple(self.actuators.shape) != (count,) or bool((self.actuators < 0).any()):
+            raise ValueError(f"actuators must be non-negative integers of shape [{count}]")
 
     def actuated_rest_length(self, action: Tensor | None) -> Tensor:
         """ℓ₀ (1 − c·clamp(a, −1, 1)) per spring, shape `[B, s]` (or `[s]` without an action), in m."""
