@@ -73,12 +73,14 @@ def run(steps: int = 30, iterations: int = 60, resolution: int = 2) -> Result:
         simulated = trajectory(build_scene(log_youngs.exp(), poisson.clamp(-0.9, 0.49), resolution), steps)
         loss = ((simulated - observed) / scale).square().mean()
         loss.backward()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         return loss
 
     start = time.perf_counter()
     optimizer.step(closure)
-    return Result(float(log_youngs.exp()), float(poisson), losses, time.perf_counter() - start)
+    return Result(
+        float(log_youngs.detach().exp()), float(poisson.detach()), losses, time.perf_counter() - start
+    )
 
 
 def check(result: Result) -> None:
