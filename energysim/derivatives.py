@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.assembly import PATTERNS, assemble
+from energysim.assembly import PATTERNS, SparsityPattern, assemble
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 EnergyFn = Callable[[Tensor], Tensor]
@@ -109,7 +109,7 @@ class HessianOperator:
         """The assembled CSR matrix of diagonal + blocks, size B·n·d, or None if there is neither."""
         if self._matrix is None and (self.blocks or self.diagonal is not None):
             batch, n, dim = like.shape
-            pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+            pattern = self._pattern(like)
             diagonal = None
             if self.diagonal is not None:
                 diagonal = self.diagonal.reshape(-1, n, 1).expand(batch, n, dim)
@@ -138,7 +138,7 @@ class HessianOperator:
             return None
         batch, n, dim = like.shape
         size = n * dim
-        pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+        pattern = self._pattern(like)
         out = like.new_zeros(batch, size, size)
         rows, cols = pattern.row_indices, pattern.col_indices
         out.index_put_((rows // size, rows % size, cols % size), matrix.values())
@@ -147,25 +147,19 @@ class HessianOperator:
     def vertex_blocks(self, like: Tensor) -> Tensor:
         """The d×d diagonal block of H at every vertex, shape `[B, n, d, d]`, for block-Jacobi.
 
-        Products from `extra_products` are not included: they have no cheap diagonal.
+        Read from the assembled values (fixed DOFs are already identity there). Products from
+        `extra_products` are not included: they have no cheap diagonal. Without an assembled
+        matrix the blocks are identities.
         """
         batch, n, dim = like.shape
         matrix = self.matrix(like)
-        if matrix is not None:  # read them from the assembled values (fixed DOFs already identity)
-            pattern = PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
-            return matrix.values()[pattern.vertex_block_positions].reshape(batch, n, dim, dim)
-        eye = torch.eye(dim, dtype=like.dtype, device=like.device)
-        out = like.new_zeros(batch, n, dim, dim)
-        if self.diagonal is not None:
-            out = out + self.diagonal.reshape(-1, n, 1, 1) * eye
-        for element_vertices, block in self.blocks:
-            count, corners = element_vertices.shape
-            local = block.reshape(block.shape[0], count, corners, dim, corners, dim)
-            diagonal = torch.diagonal(local, dim1=2, dim2=4).permute(0, 1, 4, 2, 3)  # [B, m, k, d, d]
-            out = out.index_add(
-                1, element_vertices.reshape(-1), diagonal.reshape(block.shape[0], -1, dim, dim)
-            )
-        return out
+        if matrix is None:
+            return torch.eye(dim, dtype=like.dtype, device=like.device).expand(batch, n, dim, dim)
+        return matrix.values()[self._pattern(like).vertex_block_positions].reshape(batch, n, dim, dim)
+
+    def _pattern(self, like: Tensor) -> SparsityPattern:
+        batch, n, dim = like.shape
+        return PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
 
 
 def hessian_operator(

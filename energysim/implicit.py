@@ -97,7 +97,7 @@ def solve_adjoint(
                 "minimum and the implicit gradient does not exist"
             )
         return torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
-    inverse, _ = block_jacobi_preconditioner(operator, x)
+    inverse = block_jacobi_preconditioner(operator, x)
     solution, _ = conjugate_gradient(operator, rhs, lambda r: (inverse @ r[..., None])[..., 0], rtol=rtol)
     return solution
 

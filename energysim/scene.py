@@ -147,7 +147,3 @@ class Scene(nn.Module):
             raise TypeError(f"state must be a floating-point tensor, got {state.dtype}")
         batched = state.reshape(-1, 2, self.num_vertices, self.dim)
         return batched[:, 0], batched[:, 1]
-
-    def potential_terms(self) -> list[EnergyTerm]:
-        """The scene's terms (everything but inertia)."""
-        return list(self.terms)

@@ -95,10 +95,14 @@ class Solver:
             solver=f"unrolled Newton (tol of {self.name})",
             tol=self.tol,
         )
+        return self._report(result)
+
+    def _report(self, result: SolverResult) -> SolverResult:
+        """Warn, or raise when strict, if `result` did not converge; return it."""
         if not result.converged:
             if self.strict:
                 raise ConvergenceError(result.summary())
-            warnings.warn(result.summary(), ConvergenceWarning, stacklevel=3)
+            warnings.warn(result.summary(), ConvergenceWarning, stacklevel=4)
         return result
 
     def finish(
@@ -119,11 +123,7 @@ class Solver:
         )
         if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
             raise ConvergenceError("non-finite positions or residual: " + result.summary())
-        if not result.converged:
-            if self.strict:
-                raise ConvergenceError(result.summary())
-            warnings.warn(result.summary(), ConvergenceWarning, stacklevel=3)
-        return result
+        return self._report(result)
 
 
 def backtracking_line_search(

@@ -24,8 +24,8 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(dim=(-1, -2))
 
 
-def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> tuple[Tensor, Tensor]:
-    """Inverses of the per-vertex d×d diagonal blocks of H, shape `[B, n, d, d]`, and a fallback flag.
+def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> Tensor:
+    """Inverses of the per-vertex d×d diagonal blocks of H, shape `[B, n, d, d]`.
 
     A block that is not positive definite (compressed or inverted elements) is replaced by its
     diagonal's absolute value, so the preconditioner stays SPD and CG stays well defined.
@@ -39,7 +39,7 @@ def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> tupl
         diag = blocks.diagonal(dim1=-2, dim2=-1).abs().clamp_min(torch.finfo(like.dtype).tiny)
         fallback = torch.diag_embed(diag)
         factor = torch.where(bad[..., None, None], torch.linalg.cholesky(fallback), factor)
-    return torch.cholesky_inverse(factor), bad
+    return torch.cholesky_inverse(factor)
 
 
 @dataclass(frozen=True)
@@ -156,7 +156,7 @@ class NewtonCG(Solver):
     ) -> Callable[[Tensor], Tensor]:
         """z = P⁻¹ r: per-vertex block-Jacobi, or the lumped-mass scaling h/m when there are no blocks."""
         if self.preconditioner == "block_jacobi" and (operator.blocks or operator.diagonal is not None):
-            inverse, _ = block_jacobi_preconditioner(operator, x)
+            inverse = block_jacobi_preconditioner(operator, x)
             return lambda r: (inverse @ r[..., None])[..., 0]
         scale = objective.residual_scale[:, None]
         return lambda r: r * scale
