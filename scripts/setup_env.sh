@@ -19,3 +19,18 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   fi
 fi
 "${pip[@]}" -e ".[dev]"
+
+# The browser test (tests/test_viewer_browser.py) drives Debian's chromium through playwright, which is
+# never allowed to download a browser of its own. Install chromium when it is missing and apt-get is
+# usable (root); otherwise say so and let that test skip. ENERGYSIM_NO_BROWSER=1 skips this step.
+if [ -z "${ENERGYSIM_NO_BROWSER:-}" ] && ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup_env: installing Debian's chromium for the browser test (about a minute; log in .venv/apt-chromium.log)"
+    if ! { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; } \
+        >.venv/apt-chromium.log 2>&1 </dev/null; then
+      echo "setup_env: installing chromium failed (see .venv/apt-chromium.log); the browser test will be skipped"
+    fi
+  else
+    echo "setup_env: chromium is missing and apt-get needs root here; the browser test will be skipped"
+  fi
+fi

@@ -1,0 +1,364 @@
+"""A live browser viewer: a small HTTP server that serves a three.js page and the trajectory it loops over.
+
+    viewer = Viewer(scene)
+    viewer.add_sphere("target", (2.0, 0.5, 0.0), 0.05, "red")
+    viewer.serve(8080)                  # returns at once; open http://127.0.0.1:8080
+    for it in range(iterations):
+        ...
+        viewer.loop_states(states)      # the open page switches to the new trajectory without a reload
+    viewer.stop()
+
+The server serves a fixed set of names only: the page, its two scripts, the three.js licence, the
+trajectory (``/trajectory.bin``, see `energysim.viewer.trajectory`) and ``/version``, which the page polls.
+Every other path, including any with ``..``, gets 404; nothing is looked up on the file system.
+"""
+
+from __future__ import annotations
+
+import errno
+import http.server
+import importlib.resources
+import json
+import logging
+import secrets
+import socket
+import threading
+from collections.abc import Mapping, Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from energysim.mesh import SimplexMesh
+
+from . import trajectory
+from .trajectory import Marker, Surface
+
+if TYPE_CHECKING:
+    from energysim.scene import Scene
+
+logger = logging.getLogger(__name__)
+
+# URL path -> (file in static/, content type). The page and its assets, nothing else.
+_ASSETS = {
+    "/": ("index.html", "text/html; charset=utf-8"),
+    "/index.html": ("index.html", "text/html; charset=utf-8"),
+    "/viewer.js": ("viewer.js", "text/javascript; charset=utf-8"),
+    "/three.bundle.min.js": ("three.bundle.min.js", "text/javascript; charset=utf-8"),
+    "/THREE_LICENSE.txt": ("THREE_LICENSE.txt", "text/plain; charset=utf-8"),
+}
+_DISCONNECTS = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
+
+
+def _load_assets() -> dict[str, tuple[bytes, str]]:
+    static = importlib.resources.files(__package__) / "static"
+    return {path: ((static / name).read_bytes(), kind) for path, (name, kind) in _ASSETS.items()}
+
+
+class Viewer:
+    """Serves a scene's surface and a looping trajectory to a browser page (three.js, no network needed).
+
+    Args:
+        scene: a `Scene` (its mesh and time step are used) or a bare `SimplexMesh` (`TetMesh`: the
+            boundary triangles are drawn; `TriMesh`: all triangles, in the z = 0 plane).
+        ground_height: height y of the ground plane drawn, in m; None: no ground.
+        frame_dt: default seconds between frames when the page plays in real time; default the
+            scene's time step (1/60 s for a bare mesh).
+
+    Until `loop_states` is called the page shows the rest shape. Thread-safe: `loop_states` and the
+    marker methods may be called from any thread while pages download.
+    """
+
+    def __init__(
+        self, scene: Scene | SimplexMesh, ground_height: float | None = 0.0, frame_dt: float | None = None
+    ) -> None:
+        mesh = scene if isinstance(scene, SimplexMesh) else getattr(scene, "mesh", None)
+        if not isinstance(mesh, SimplexMesh):
+            raise TypeError(f"Viewer needs a Scene or a SimplexMesh, got {type(scene).__name__}")
+        if ground_height is not None:
+            ground_height = trajectory.check_vector(ground_height, 1, "ground_height")[0]
+        self._surface = Surface.of(mesh)
+        self._ground_height = ground_height
+        self._default_frame_dt = trajectory.check_frame_dt(
+            frame_dt if frame_dt is not None else getattr(scene, "dt", 1.0 / 60.0)
+        )
+        self._assets = _load_assets()
+        # Writers (loop_states, markers) hold _write_lock while they pack; _lock only guards the swap of
+        # the finished message, so downloads never wait for packing.
+        self._write_lock = threading.Lock()
+        self._lock = threading.Lock()
+        # Names this viewer's content: a page left open across a restart on the same port sees a new
+        # session even if the version numbers happen to agree.
+        self._session = secrets.token_hex(8)
+        self._version = 0
+        self._markers: dict[str, Marker] = {}
+        rest = mesh.vertices.numpy()[self._surface.point_ids]
+        if mesh.dim == 2:
+            rest = np.pad(rest, ((0, 0), (0, 1)))
+        self._positions = rest[None]
+        self._fields: dict[str, tuple[str, np.ndarray]] = {}
+        self._frame_dt = self._default_frame_dt
+        self._message = b""
+        self._repack()
+        self._server: http.server.ThreadingHTTPServer | None = None
+        self._thread: threading.Thread | None = None
+
+    # -- what is shown -------------------------------------------------------------------------------
+
+    def loop_states(
+        self,
+        states: Any,
+        vertex_scalars: Mapping[str, Any] | None = None,
+        element_scalars: Mapping[str, Any] | None = None,
+        frame_dt: float | None = None,
+    ) -> int:
+        """Replace the trajectory the page loops over; returns its version number.
+
+        Args:
+            states: flat states `[x.flatten(), v.flatten()]`, each shape `[2·n·d]`, as a list or a stack
+                `[F, 2·n·d]` (tensor or array); positions in m. One flat state is a one-frame trajectory.
+            vertex_scalars: name -> values per frame and vertex `[F, n]` (or `[n]` for every frame),
+                e.g. muscle activation; the page offers each as a colouring.
+            element_scalars: name -> values per frame and element `[F, m]` (or `[m]`), e.g. strain
+                energy density in J/m³ from `energysim.viewer.strain_energy_density`.
+            frame_dt: seconds between frames for real-time playback; default the viewer's.
+
+        Raises ValueError for a wrong shape, an empty trajectory, non-finite values or a name used twice;
+        the trajectory shown is then left as it was. Inputs are copied, so they may change afterwards.
+        """
+        positions = trajectory.frame_positions(states, self._surface)
+        fields: dict[str, tuple[str, np.ndarray]] = {}
+        for location, scalars in (("vertex", vertex_scalars), ("element", element_scalars)):
+            for name, values in (scalars or {}).items():
+                if not isinstance(name, str) or not name:
+                    raise ValueError(f"scalar field names must be non-empty strings, got {name!r}")
+                if name in fields:
+                    raise ValueError(f"scalar field {name!r} is given both per vertex and per element")
+                fields[name] = (
+                    location,
+                    trajectory.scalar_field(values, name, location, self._surface, positions.shape[0]),
+                )
+        dt = self._default_frame_dt if frame_dt is None else trajectory.check_frame_dt(frame_dt)
+        with self._write_lock:
+            self._positions, self._fields, self._frame_dt = positions, fields, dt
+            return self._repack()
+
+    def add_sphere(
+        self, name: str, position: Sequence[float], radius: float, color: str | Sequence[float] = "red"
+    ) -> None:
+        """Draw (or move, if `name` exists) a sphere of `radius` m centred at `position` `[3]` m.
+
+        `color`: ``#rrggbb``, ``#rgb``, a name such as ``"red"``, or an RGB triple in [0, 1].
+        """
+        self._set_marker(trajectory.make_marker(name, "sphere", position, [radius], color))
+
+    def add_box(
+        self,
+        name: str,
+        position: Sequence[float],
+        size: Sequence[float],
+        color: str | Sequence[float] = "gray",
+    ) -> None:
+        """Draw (or move) an axis-aligned box centred at `position` `[3]` m, edge lengths `size` `[3]` m."""
+        self._set_marker(trajectory.make_marker(name, "box", position, size, color))
+
+    def remove_marker(self, name: str) -> None:
+        """Remove the sphere or box called `name`; KeyError if there is none."""
+        with self._write_lock:
+            if name not in self._markers:
+                raise KeyError(f"no marker called {name!r}; markers: {sorted(self._markers)}")
+            del self._markers[name]
+            self._repack()
+
+    def _set_marker(self, marker: Marker) -> None:
+        with self._write_lock:
+            self._markers[marker.name] = marker
+            self._repack()
+
+    def _repack(self) -> int:
+        """Publish the current content under a new version; the caller holds _write_lock (or, in
+        __init__, no other thread exists). Downloads in progress keep the bytes they started with."""
+        version = self._version + 1
+        message = trajectory.pack(
+            self._session,
+            version,
+            self._surface,
+            self._positions,
+            self._fields,
+            list(self._markers.values()),
+            self._frame_dt,
+            self._ground_height,
+        )
+        with self._lock:
+            self._message, self._version = message, version
+        return version
+
+    @property
+    def version(self) -> int:
+        """Number of the content now served; it grows by one with every change."""
+        with self._lock:
+            return self._version
+
+    def trajectory_bytes(self) -> bytes:
+        """The message ``/trajectory.bin`` serves now (format in `energysim.viewer.trajectory`)."""
+        with self._lock:
+            return self._message
+
+    # -- the server ----------------------------------------------------------------------------------
+
+    def serve(self, port: int = 8080, host: str = "127.0.0.1") -> str:
+        """Start serving in a background (daemon) thread and return the page's URL at once.
+
+        Args:
+            port: TCP port; 0 picks a free one (see `port`).
+            host: address to bind. The default serves this machine only; pass e.g. ``"0.0.0.0"`` to let
+                other machines connect (the server has no authentication).
+
+        Raises RuntimeError if already serving, OSError if the port is taken.
+        """
+        if self._server is not None:
+            raise RuntimeError(f"already serving at {self.url}; call stop() first")
+        if not isinstance(port, int) or not 0 <= port <= 65535:
+            raise ValueError(f"port must be an integer in [0, 65535], got {port!r}")
+        try:
+            server = _Server((host, port), _Handler, self)
+        except OSError as err:
+            if err.errno == errno.EADDRINUSE:
+                raise OSError(err.errno, f"port {port} on {host} is in use; pick another or port=0") from err
+            raise
+        self._server = server
+        self._thread = threading.Thread(
+            target=server.serve_forever, args=(0.05,), name="energysim-viewer", daemon=True
+        )
+        self._thread.start()
+        logger.info("viewer serving at %s", self.url)
+        return self.url
+
+    def stop(self) -> None:
+        """Stop serving and close the listening socket, so the port can be bound again at once.
+
+        Safe to call when not serving. Pages already open keep their last trajectory and show that the
+        server is gone.
+        """
+        server, thread = self._server, self._thread
+        if server is None:
+            return
+        server.shutdown()
+        server.server_close()
+        if thread is not None:
+            thread.join()
+        self._server, self._thread = None, None
+
+    @property
+    def serving(self) -> bool:
+        """Whether the server is running."""
+        return self._server is not None
+
+    @property
+    def host(self) -> str:
+        """The address the server is bound to; RuntimeError when not serving."""
+        return str(self._address()[0])
+
+    @property
+    def port(self) -> int:
+        """The TCP port served (the one picked, after ``serve(0)``); RuntimeError when not serving."""
+        return int(self._address()[1])
+
+    @property
+    def url(self) -> str:
+        """``http://host:port/`` of the page; RuntimeError when not serving."""
+        host = self.host
+        if host in ("0.0.0.0", ""):
+            host = "127.0.0.1"
+        elif host == "::":
+            host = "::1"
+        return f"http://[{host}]:{self.port}/" if ":" in host else f"http://{host}:{self.port}/"
+
+    def _address(self) -> tuple[Any, ...]:
+        if self._server is None:
+            raise RuntimeError("the viewer is not serving; call serve() first")
+        return self._server.server_address
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        where = self.url if self.serving else "not serving"
+        return f"Viewer({self._surface.faces.shape[0]} faces, version {self.version}, {where})"
+
+
+class _Server(http.server.ThreadingHTTPServer):
+    """One thread per connection; threads do not keep the process alive, and errors go to logging."""
+
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, address: tuple[str, int], handler: type, viewer: Viewer) -> None:
+        self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+        self.viewer = viewer
+        super().__init__(address, handler)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        # A browser closing a tab mid-download is routine; anything else is a bug worth a traceback.
+        logger.exception("viewer: error while serving %s", client_address)
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    server: _Server
+    server_version = "energysim-viewer"
+    sys_version = ""
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+        self._respond(send_body=True)
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self._respond(send_body=False)
+
+    def _respond(self, send_body: bool) -> None:
+        # Exact match of the path (query ignored) against fixed names: no path is ever joined or
+        # resolved, so "..", "%2e%2e", "//etc/passwd" and absolute-form targets all miss and get 404.
+        path = urlsplit(self.path).path
+        viewer = self.server.viewer
+        if path in viewer._assets:
+            body, kind = viewer._assets[path]
+            cache = "no-cache"
+        elif path == "/trajectory.bin":
+            body, kind, cache = viewer.trajectory_bytes(), "application/octet-stream", "no-store"
+        elif path == "/version":
+            body = json.dumps({"session": viewer._session, "version": viewer.version}).encode()
+            kind, cache = "application/json", "no-store"
+        else:
+            body, kind, cache = b"not found\n", "text/plain; charset=utf-8", "no-store"
+            self._send(404, body, kind, cache, send_body)
+            return
+        self._send(200, body, kind, cache, send_body)
+
+    def _send(self, status: int, body: bytes, kind: str, cache: str, send_body: bool) -> None:
+        try:
+            self.send_response(status)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", cache)
+            self.send_header("X-Content-Type-Options", "nosniff")
+            self.end_headers()
+            if send_body:
+                self.wfile.write(body)
+        except _DISCONNECTS:
+            logger.debug("viewer: client %s went away", self.client_address)
+            self.close_connection = True
+
+    def handle_one_request(self) -> None:
+        # Disconnects can also surface while the request line is read; they end this connection only.
+        try:
+            super().handle_one_request()
+        except _DISCONNECTS:
+            self.close_connection = True
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - http.server's signature
+        logger.debug("viewer %s: " + format, self.address_string(), *args)
