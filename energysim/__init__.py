@@ -4,6 +4,7 @@ One implicit-Euler step is the minimisation
 x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x) by a pluggable optimizer.
 """
 
+from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereObstacle
 from energysim.energies import (
     ActuatedSprings,
     ElementEnergy,
@@ -20,9 +21,15 @@ from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, N
 from energysim.rollout import rollout
 from energysim.scene import Scene
 from energysim.step import StepResult, solve_static, step, timestep
+from energysim.viewer import Viewer
 
 __all__ = [
     "ActuatedSprings",
+    "BoxObstacle",
+    "Ground",
+    "HalfSpace",
+    "Obstacle",
+    "SphereObstacle",
     "GradientError",
     "rollout",
     "LBFGS",
@@ -44,6 +51,7 @@ __all__ = [
     "StepResult",
     "TetMesh",
     "TriMesh",
+    "Viewer",
     "load_mesh",
     "solve_static",
     "step",

@@ -102,11 +102,20 @@ def solve_adjoint(
     return solution
 
 
-def _step_terms(
-    terms: Sequence[EnergyTerm], vertex_mass: Tensor, dt: float, x_prev: Tensor, v_prev: Tensor, free: Tensor
+def step_terms(
+    terms: Sequence[EnergyTerm],
+    vertex_mass: Tensor,
+    dt: float,
+    x_prev: Tensor,
+    v_prev: Tensor,
+    free: Tensor,
+    anchor: Tensor | None = None,
 ) -> list[EnergyTerm]:
+    """The terms of one step's objective: inertia, the scene's terms, and the terms they build from
+    the step's start (lagged friction). Autograd history of `x_prev` flows into all of them."""
     predicted = x_prev + dt * v_prev * free[:, None].to(v_prev.dtype)
-    return [Inertia(vertex_mass, dt, predicted), *terms]
+    lagged = [extra for term in terms for extra in term.lagged_terms(x_prev, dt)]
+    return [Inertia(vertex_mass, dt, predicted, anchor=anchor), *terms, *lagged]
 
 
 class ImplicitStep(torch.autograd.Function):
@@ -150,7 +159,7 @@ class ImplicitStep(torch.autograd.Function):
         free = context["free"]
         free_f = free[:, None].to(grad_x.dtype)
         dt = context["dt"]
-        terms_now = _step_terms(
+        terms_now = step_terms(
             context["terms"], context["vertex_mass"].detach(), dt, x_prev.detach(), v_prev.detach(), free
         )
         objective = Objective(
@@ -171,7 +180,7 @@ class ImplicitStep(torch.autograd.Function):
             xp = x_prev.detach().requires_grad_(wanted[0])
             vp = v_prev.detach().requires_grad_(wanted[1])
             act = None if action is None else action.detach().requires_grad_(bool(wanted[2]))
-            terms = _step_terms(context["terms"], context["vertex_mass"], dt, xp, vp, free)
+            terms = step_terms(context["terms"], context["vertex_mass"], dt, xp, vp, free)
             x = x_star.detach().requires_grad_(True)
             # pinned vertices sit at x_prev, and through the elastic terms they pull on their free
             # neighbours: taking them from xp puts that coupling, −uᵀ ∂g_free/∂x_pinned, in the VJP
@@ -230,13 +239,13 @@ def unrolled_step(
         x* `[B, n, d]` (with its graph), the Newton iterations taken, and the final residual (m/s).
     """
     free_f = free[:, None].to(x_prev.dtype)
-    step_terms = _step_terms(terms, vertex_mass, dt, x_prev, v_prev, free)
+    objective_terms = step_terms(terms, vertex_mass, dt, x_prev, v_prev, free)
     scale = (dt / vertex_mass)[:, None]
 
     def energy(y: Tensor) -> Tensor:
-        return sum(term(y, action) for term in step_terms)
+        return sum(term(y, action) for term in objective_terms)
 
-    x = step_terms[0].predicted_positions
+    x = objective_terms[0].predicted_positions
     if not x.requires_grad:  # the state is a constant; only parameters carry gradients
         x = x.detach().requires_grad_(True)
     residual = previous = float("inf")

@@ -75,6 +75,10 @@ class Objective:
                 limit = torch.minimum(limit, term_limit)
         return limit
 
-    def hessian(self, x: Tensor, *, use_element_blocks: bool = True) -> HessianOperator:
+    def hessian(
+        self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False
+    ) -> HessianOperator:
         """∇²E(x) as an operator (see `energysim.derivatives.hessian_operator`)."""
-        return hessian_operator(self.terms, x, self.action, self.free, use_element_blocks=use_element_blocks)
+        return hessian_operator(
+            self.terms, x, self.action, self.free, use_element_blocks=use_element_blocks, project=project
+        )

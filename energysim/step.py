@@ -11,8 +11,7 @@ import torch
 from torch import Tensor
 
 from energysim.derivatives import energy_and_gradient
-from energysim.energies.inertia import Inertia
-from energysim.implicit import ImplicitStep, differentiable_parameters, unrolled_step
+from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
 from energysim.scene import Scene
@@ -46,14 +45,26 @@ def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
     return action
 
 
-def _warm_start(objective: Objective, predicted: Tensor, dt: float) -> Tensor:
-    # Add the displacement the linear terms (gravity) alone would cause in one step, h² M⁻¹ f:
-    # it costs one gradient of terms that are cheap, and saves the solver a Newton iteration.
+def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: float) -> Tensor:
+    """Where the solver starts: the inertial prediction x_n + h v_n plus the displacement the linear
+    terms (gravity) alone would cause in one step, h² M⁻¹ f, which saves a Newton iteration.
+
+    The start must be admissible: it is cut back along the way from x_n to the largest fraction
+    every term allows (an obstacle on the way stops it short), and a state that starts inside an
+    obstacle is refused there with a clear error.
+    """
+    start = predicted
     linear = [term for term in objective.terms if term.is_linear]
-    if not linear:
-        return predicted
-    _, gradient = energy_and_gradient(lambda y: sum(term(y, objective.action) for term in linear), predicted)
-    return predicted - (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
+    if linear:
+        _, gradient = energy_and_gradient(
+            lambda y: sum(term(y, objective.action) for term in linear), predicted
+        )
+        start = predicted - (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
+    motion = start - x_prev
+    fraction = objective.max_step(x_prev, motion)
+    if bool((fraction < 1).any()):
+        start = x_prev + fraction[:, None, None] * motion
+    return start
 
 
 GRAD_MODES = ("implicit", "unrolled")
@@ -112,11 +123,10 @@ def step(
                 residual_scale=scene.dt / scene.vertex_mass.detach(),
                 action=None if action is None else action.detach(),
             )
-            start = _warm_start(objective, predicted, scene.dt)
-            objective.terms = [
-                Inertia(scene.vertex_mass.detach(), scene.dt, predicted, anchor=start),
-                *scene.terms,
-            ]
+            start = _warm_start(objective, predicted, xp, scene.dt)
+            objective.terms = step_terms(
+                list(scene.terms), scene.vertex_mass.detach(), scene.dt, xp, vp, scene.free, anchor=start
+            )
             objective.anchor = start
             return solver.minimize(objective, start)
 

@@ -42,6 +42,11 @@ class EnergyTerm(nn.Module):
         """
         return None
 
+    def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
+        """Terms this one adds to a single step's objective, built from the positions at the step's
+        start, `[B, n, d]` (friction, whose normal forces are taken there); default none."""
+        return []
+
 
 class ElementEnergy(EnergyTerm):
     """A sum of energies of small elements, each depending on the positions of its k vertices.

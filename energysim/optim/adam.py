@@ -15,7 +15,9 @@ from energysim.optim.base import Solver, SolverResult
 class Adam(Solver):
     """`torch.optim.Adam` on positions, halving the learning rate when the energy stops falling.
 
-    First-order: cheap per iteration, but many iterations for a tight residual; a baseline.
+    First-order: cheap per iteration, but many iterations for a tight residual; a baseline. Each
+    update is cut back to the largest fraction every term's `max_step` allows, so obstacles are
+    never crossed.
 
     Args:
         tol: velocity-residual tolerance in m/s.
@@ -50,7 +52,14 @@ class Adam(Solver):
                 break
             iterations += 1
             x.grad = gradient * free
+            before = x.detach().clone()
             optimizer.step()
+            with torch.no_grad():
+                # Adam knows nothing of obstacles: cut its step back to what every term allows
+                motion = x - before
+                fraction = objective.max_step(before, motion)
+                if bool((fraction < 1).any()):
+                    x.copy_(before + fraction[:, None, None] * motion)
             scheduler.step(total)
         else:
             energy, gradient = objective.energy_and_gradient(x.detach())

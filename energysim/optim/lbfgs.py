@@ -1,4 +1,4 @@
-"""L-BFGS with a strong-Wolfe line search, in mass-scaled coordinates."""
+"""L-BFGS, batched, with the shared backtracking line search (so it respects every term's `max_step`)."""
 
 from __future__ import annotations
 
@@ -8,20 +8,40 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
-from energysim.optim.base import Solver, SolverResult
+from energysim.optim.base import Solver, SolverResult, backtracking_line_search
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(dim=(-1, -2))
+
+
+def _initial_inverse_hessian(objective: Objective, x: Tensor) -> Tensor:
+    """A diagonal guess D of H⁻¹ per vertex, `[n, 1]`: h²/m where the inertia term is present (its
+    exact inverse Hessian, which dominates at small steps), else h/m (scaled by the first step)."""
+    diagonal = None
+    for term in objective.terms:
+        if hasattr(term, "hessian_diagonal"):
+            value = term.hessian_diagonal()
+            diagonal = value if diagonal is None else diagonal + value
+    if diagonal is None:
+        return objective.residual_scale[:, None].to(x)
+    return 1.0 / diagonal[:, None].to(x)
 
 
 @dataclass(frozen=True)
 class LBFGS(Solver):
-    """`torch.optim.LBFGS` (strong Wolfe) on y, with x = x0 + (h/m) y per vertex.
+    """Limited-memory BFGS with an Armijo backtracking line search, per batch entry.
 
-    In these coordinates ∇_y E = h M⁻¹ ∇_x E, the velocity residual itself, so L-BFGS's own
-    gradient test is exactly the shared stopping rule, and heavy and light vertices are
-    equally well scaled.
+    The two-loop recursion starts from the diagonal D = h²/m (the inertia term's exact inverse
+    Hessian), scaled each iteration by sᵀy / yᵀDy, so the first step is already well scaled and
+    heavy and light vertices are treated alike. Each line search starts from the largest step
+    every term allows (`max_step`: obstacles), so contact scenes stay intersection-free. Pairs
+    with sᵀy ≤ 0 (possible on nonconvex energies without a Wolfe search) are skipped; an entry whose
+    line search fails restarts from D, and stops if that fails too.
 
     Args:
         tol: velocity-residual tolerance in m/s.
-        max_iter: most L-BFGS iterations.
+        max_iter: most iterations.
         strict: raise instead of warning when `tol` is not reached.
         history_size: number of curvature pairs kept.
     """
@@ -29,28 +49,80 @@ class LBFGS(Solver):
     max_iter: int = 500
     history_size: int = 20
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.history_size < 1:
+            raise ValueError(f"history_size must be >= 1, got {self.history_size}")
+
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
-        x0 = x0.detach()
-        scale = (objective.residual_scale * objective.free.to(x0.dtype))[:, None]
-        y = torch.zeros_like(x0, requires_grad=True)
-        optimizer = torch.optim.LBFGS(
-            [y],
-            lr=1.0,
-            max_iter=self.max_iter,
-            max_eval=self.max_iter * 5 // 4 + 25,
-            tolerance_grad=self.tol,
-            tolerance_change=0.0,
-            history_size=self.history_size,
-            line_search_fn="strong_wolfe",
-        )
+        x = x0.detach().clone()
+        free = objective.free[:, None].to(x.dtype)
+        inverse_diagonal = _initial_inverse_hessian(objective, x) * free
+        energy, gradient = objective.energy_and_gradient(x)
+        residual = objective.residual(gradient)
+        history: list[tuple[Tensor, Tensor, Tensor]] = []  # (s, y, 1/sᵀy or 0 where skipped)
+        scale = torch.ones_like(energy)
+        restarted = torch.zeros_like(energy, dtype=torch.bool)
+        stalled = torch.zeros_like(restarted)
+        iterations = 0
+        for _ in range(self.max_iter):
+            active = (residual >= self.tol) & ~stalled
+            if not active.any():
+                break
+            iterations += 1
+            direction = -self._two_loop(gradient, history, inverse_diagonal, scale) * active[:, None, None]
+            downhill = _dot(gradient, direction) < 0
+            direction = torch.where(downhill[:, None, None], direction, -inverse_diagonal * gradient)
+            step, _, unjudged = backtracking_line_search(
+                objective, x, energy, gradient, direction, objective.max_step(x, direction)
+            )
+            failed = active & (step == 0)
+            stalled = stalled | (failed & restarted)
+            restarted = failed
+            x_new = x + step[:, None, None] * direction
+            new_energy, new_gradient = objective.energy_and_gradient(x_new)
+            new_residual = objective.residual(new_gradient)
+            # as in Newton–CG: a step the energy cannot judge stands only if the residual fell
+            worse = active & unjudged & (new_residual >= residual)
+            stalled = stalled | worse
+            moved = active & ~failed & ~worse
+            s = (x_new - x) * moved[:, None, None]
+            y = (new_gradient - gradient) * moved[:, None, None]
+            curvature = _dot(s, y)
+            usable = moved & (curvature > 1e-12 * _dot(s, s).sqrt() * _dot(y, y).sqrt())
+            if usable.any():
+                history.append((s, y, torch.where(usable, 1.0 / curvature.where(usable, 1.0), 0.0)))
+                weighted = _dot(y, inverse_diagonal * y).clamp_min(torch.finfo(x.dtype).tiny)
+                scale = torch.where(usable, curvature / weighted, scale)
+                if len(history) > self.history_size:
+                    history.pop(0)
+            if failed.any():
+                # forget the curvature of entries whose step failed: restart from D
+                history = [(s_, y_, torch.where(failed, 0.0, rho)) for s_, y_, rho in history]
+                scale = torch.where(failed, torch.ones_like(scale), scale)
+            keep = ~moved[:, None, None]
+            x = torch.where(keep, x, x_new)
+            gradient = torch.where(keep, gradient, new_gradient)
+            energy = torch.where(moved, new_energy, energy)
+            residual = torch.where(moved, new_residual, residual)
+        return self.finish(objective, x, residual, iterations, 0)
 
-        def closure() -> Tensor:
-            energy, gradient = objective.energy_and_gradient(x0 + scale * y.detach())
-            y.grad = gradient * scale
-            return energy.sum()
-
-        optimizer.step(closure)
-        iterations = optimizer.state[optimizer._params[0]].get("n_iter", 0)
-        x = x0 + scale * y.detach()
-        _, gradient = objective.energy_and_gradient(x)
-        return self.finish(objective, x, objective.residual(gradient), iterations, 0)
+    @staticmethod
+    def _two_loop(
+        gradient: Tensor,
+        history: list[tuple[Tensor, Tensor, Tensor]],
+        inverse_diagonal: Tensor,
+        scale: Tensor,
+    ) -> Tensor:
+        """H_k ∇E by the two-loop recursion over the stored pairs, per batch entry."""
+        q = gradient.clone()
+        alphas = []
+        for s, y, rho in reversed(history):
+            alpha = rho * _dot(s, q)
+            q = q - alpha[:, None, None] * y
+            alphas.append(alpha)
+        r = scale[:, None, None] * inverse_diagonal * q
+        for (s, y, rho), alpha in zip(history, reversed(alphas), strict=True):
+            beta = rho * _dot(y, r)
+            r = r + (alpha - beta)[:, None, None] * s
+        return r

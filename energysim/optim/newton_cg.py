@@ -59,14 +59,19 @@ class NewtonCG(Solver):
         direct_max_dofs: systems of at most this many DOFs per batch entry are solved exactly by a
             dense Cholesky factorisation instead of CG (far cheaper for small bodies, where CG is
             all per-iteration overhead); where H is not positive definite, truncated CG takes over.
+        project_hessian: project every element block to positive semidefinite (projected Newton,
+            as IPC does) instead of truncating CG on negative curvature. Off by default: on the
+            hard cases in the tests (inverted, scrambled and flattened bodies, 20 m/s impacts) the
+            exact Hessian with Steihaug truncation needs fewer iterations.
     """
 
-    max_iter: int = 50
+    max_iter: int = 100
     max_cg_iter: int = 1000
     forcing: float = 0.01
     hessian: str = "elements"
     preconditioner: str = "block_jacobi"
     direct_max_dofs: int = 600
+    project_hessian: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -74,6 +79,8 @@ class NewtonCG(Solver):
             raise ValueError(f"hessian must be 'elements' or 'autograd', got {self.hessian!r}")
         if self.preconditioner not in ("block_jacobi", "none"):
             raise ValueError(f"preconditioner must be 'block_jacobi' or 'none', got {self.preconditioner!r}")
+        if self.project_hessian and self.hessian != "elements":
+            raise ValueError("project_hessian needs hessian='elements' (blocks to project)")
         if not (0 < self.forcing < 1):
             raise ValueError(f"forcing must lie in (0, 1), got {self.forcing}")
 
@@ -91,18 +98,11 @@ class NewtonCG(Solver):
             if not active.any():
                 break
             iterations += 1
-            operator = objective.hessian(x, use_element_blocks=self.hessian == "elements")
-            precondition = self._preconditioner(operator, x, objective)
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
             wanted = active & ~steepest
-            direction, solved = self._direct(operator, -gradient, x, wanted)
-            if (wanted & ~solved).any():
-                iterative = self._truncated_cg(
-                    operator, -gradient, precondition, eta, wanted & ~solved, objective
-                )
-                direction = torch.where(solved[:, None, None], direction, iterative)
-            hvps += operator.products
+            direction, precondition, products = self._newton_direction(objective, x, gradient, eta, wanted)
+            hvps += products
             direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
             # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient
             slope = _dot(gradient, direction)
@@ -129,6 +129,22 @@ class NewtonCG(Solver):
             energy = torch.where(worse, energy, new_energy)
             residual = torch.where(worse, residual, new_residual)
         return self.finish(objective, x, residual, iterations, hvps)
+
+    def _newton_direction(
+        self, objective: Objective, x: Tensor, gradient: Tensor, eta: Tensor, wanted: Tensor
+    ) -> tuple[Tensor, Callable[[Tensor], Tensor], int]:
+        """Solve H p = −∇E for the `wanted` entries; returns p, the preconditioner, and the
+        Hessian-vector products taken."""
+        operator = objective.hessian(
+            x, use_element_blocks=self.hessian == "elements", project=self.project_hessian
+        )
+        precondition = self._preconditioner(operator, x, objective)
+        direction, solved = self._direct(operator, -gradient, x, wanted)
+        if (wanted & ~solved).any():
+            unsolved = wanted & ~solved
+            iterative = self._truncated_cg(operator, -gradient, precondition, eta, unsolved, objective)
+            direction = torch.where(solved[:, None, None], direction, iterative)
+        return direction, precondition, operator.products
 
     def _direct(
         self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor

@@ -1,0 +1,100 @@
+"""IPC's smoothed, lagged friction: a dissipative potential built at the start of each step.
+
+For a vertex in contact at the start of the step (positions x_n), with normal force λ and unit
+normal n taken there and held fixed through the step ("lagged"), the friction potential is
+
+    D(x) = μ λ f0(‖u‖),   u = (I − n nᵀ)(x − x_n),  the tangential displacement over the step,
+
+with the mollifier f0 (ipc-toolkit's `smooth_friction_mollifier`): f0(y) = y²(1 − y/(3ε))/ε + ε/3
+for y < ε and y beyond, ε = ε_v h. Its force −μλ f1(‖u‖) u/‖u‖ has magnitude μλ once the vertex
+slides faster than ε_v (kinetic friction) and ramps linearly to zero below (static friction as
+a stiff spring, up to a creep velocity of order ε_v). D is convex in x.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from energysim.energies.base import ElementEnergy
+
+
+def _norm_and_square(u: Tensor) -> tuple[Tensor, Tensor]:
+    """‖u‖ and ‖u‖² over the last axis; ‖u‖ has a zero (not NaN) derivative at u = 0.
+
+    f0 below ε is written as s/ε − y·s/(3ε²) with s = ‖u‖² smooth, so the kink of y = ‖u‖ at 0
+    enters only multiplied by s, whose value and slope vanish there: derivatives stay exact.
+    """
+    square = (u * u).sum(dim=-1)
+    positive = square > 0
+    safe = torch.where(positive, square, torch.ones_like(square))
+    return torch.where(positive, torch.sqrt(safe), torch.zeros_like(square)), square
+
+
+def mollified_slip(u: Tensor, smoothing: float) -> Tensor:
+    """f0(‖u‖) in m, over the last axis of `u` (tangential displacements in m); ε = `smoothing` in m."""
+    length, square = _norm_and_square(u)
+    ramp = square / smoothing - length * square / (3.0 * smoothing**2) + smoothing / 3.0
+    return torch.where(length < smoothing, ramp, length)
+
+
+def mollified_slip_hessian(u: Tensor, smoothing: float, projector: Tensor) -> Tensor:
+    """∇²ₓ f0(‖P(x − x_n)‖) = (f1/y) P + (f1′ − f1/y) ûûᵀ, shape `[..., d, d]` (1/m).
+
+    Below ε: f1/y = (2 − y/ε)/ε and f1′ − f1/y = −y/ε², both finite at y = 0; beyond: 1/y and −1/y.
+    """
+    length, _ = _norm_and_square(u)
+    below = length < smoothing
+    safe_length = torch.where(below, torch.full_like(length, smoothing), length)
+    over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
+    along = torch.where(below, -length / smoothing**2, -1.0 / safe_length)
+    unit = u / torch.where(length > 0, length, torch.ones_like(length))[..., None]
+    outer = unit[..., :, None] * unit[..., None, :]
+    return over_length[..., None, None] * projector + along[..., None, None] * outer
+
+
+class LaggedFriction(ElementEnergy):
+    """Σ_i μ λ_i f0(‖(I − n_i n_iᵀ)(x_i − x_n,i)‖) over contact vertices: one step's friction.
+
+    Built by an obstacle for one step from the state at its start; not added to scenes. Every
+    element is one vertex. Its lagged data may carry autograd history (from x_n or μ), which
+    makes the step's gradient include how friction depends on them.
+
+    Args:
+        element_vertices: the vertices, shape `[m, 1]`.
+        previous_positions: x_n of those vertices, shape `[B, m, d]`, in m.
+        normals: unit contact normals at x_n, shape `[B, m, d]`.
+        normal_force: λ, shape `[B, m]`, in N (0 where not in contact).
+        friction: μ, a scalar tensor.
+        smoothing: ε = ε_v h, in m.
+    """
+
+    def __init__(
+        self,
+        element_vertices: Tensor,
+        previous_positions: Tensor,
+        normals: Tensor,
+        normal_force: Tensor,
+        friction: Tensor,
+        smoothing: float,
+    ) -> None:
+        super().__init__()
+        self.element_vertices = element_vertices
+        self.previous_positions = previous_positions
+        eye = torch.eye(normals.shape[-1], dtype=normals.dtype, device=normals.device)
+        self.projector = eye - normals[..., :, None] * normals[..., None, :]
+        self.weight = friction * normal_force
+        self.smoothing = smoothing
+
+    def _slip(self, element_positions: Tensor) -> Tensor:
+        displacement = element_positions[..., 0, :] - self.previous_positions
+        return (self.projector @ displacement[..., None])[..., 0]
+
+    def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        return self.weight * mollified_slip(self._slip(element_positions), self.smoothing)
+
+    def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """Exact per-vertex Hessian blocks `[B, m, d, d]`, in N/m (convex: positive semidefinite)."""
+        slip = self._slip(element_positions)
+        hessian = mollified_slip_hessian(slip, self.smoothing, self.projector)
+        return self.weight[..., None, None] * hessian
