@@ -5,10 +5,12 @@ x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x) by a plug
 """
 
 from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereObstacle
+from energysim.creatures import CREATURES, Creature, load_creature
 from energysim.energies import (
     ActuatedSprings,
     ElementEnergy,
     EnergyTerm,
+    FibreMuscles,
     Gravity,
     Inertia,
     NeoHookean,
@@ -36,7 +38,10 @@ __all__ = [
     "Adam",
     "ConvergenceError",
     "ConvergenceWarning",
+    "CREATURES",
+    "Creature",
     "ElementEnergy",
+    "FibreMuscles",
     "EnergyTerm",
     "Gravity",
     "Inertia",
@@ -52,6 +57,7 @@ __all__ = [
     "TetMesh",
     "TriMesh",
     "Viewer",
+    "load_creature",
     "load_mesh",
     "solve_static",
     "step",

@@ -43,23 +43,37 @@ class Objective:
         with torch.no_grad():
             return self._total(x)
 
-    def _total(self, x: Tensor) -> Tensor:
-        total = None
-        for term in self.terms:
-            if term.is_linear and self.anchor is not None:
-                value = term(x - self.anchor, self.action)
-            else:
-                value = term(x, self.action)
-            total = value if total is None else total + value
-        if total is None:
-            return x.new_zeros(x.shape[0])
+    def _at(self, term: EnergyTerm, x: Tensor) -> Tensor:
+        return x - self.anchor if term.is_linear and self.anchor is not None else x
+
+    def _total(self, x: Tensor, terms: Sequence[EnergyTerm] | None = None) -> Tensor:
+        total = x.new_zeros(x.shape[0])
+        for term in self.terms if terms is None else terms:
+            total = total + term(self._at(term, x), self.action)
         return total
 
     def energy_and_gradient(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """E(x) `[B]` in J and ∇E(x) `[B, n, d]` in N, zero on fixed vertices."""
+        """E(x) `[B]` in J and ∇E(x) `[B, n, d]` in N, zero on fixed vertices.
+
+        Terms with closed-form kernels (`value_and_gradient`) skip autograd; the rest share one
+        backward pass.
+        """
         self.grad_evals += 1
-        value, gradient = energy_and_gradient(self._total, x)
-        return value, gradient * self.free[:, None].to(gradient.dtype)
+        total = x.new_zeros(x.shape[0])
+        gradient = torch.zeros_like(x)
+        others = []
+        for term in self.terms:
+            result = term.value_and_gradient(self._at(term, x), self.action)
+            if result is None:
+                others.append(term)
+            else:
+                total = total + result[0]
+                gradient = gradient + result[1]
+        if others:
+            value, rest = energy_and_gradient(lambda y: self._total(y, others), x)
+            total = total + value
+            gradient = gradient + rest
+        return total, gradient * self.free[:, None].to(gradient.dtype)
 
     def residual(self, gradient: Tensor) -> Tensor:
         """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from energysim.derivatives import energy_and_gradient
+from energysim.energies.base import EnergyTerm
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
@@ -45,26 +46,39 @@ def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
     return action
 
 
-def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: float) -> Tensor:
-    """Where the solver starts: the inertial prediction x_n + h v_n plus the displacement the linear
-    terms (gravity) alone would cause in one step, h² M⁻¹ f, which saves a Newton iteration.
+def _limits_steps(terms: list[EnergyTerm]) -> bool:
+    return any(type(term).max_step is not EnergyTerm.max_step for term in terms)
 
-    The start must be admissible: it is cut back along the way from x_n to the largest fraction
-    every term allows (an obstacle on the way stops it short), and a state that starts inside an
-    obstacle is refused there with a clear error.
+
+def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: float) -> Tensor:
+    """Where the solver starts, per batch entry; `objective` is the whole step objective.
+
+    Without obstacles: the inertial prediction x_n + h v_n plus the displacement the linear terms
+    (gravity) alone would cause in one step, h² M⁻¹ f, which saves a Newton iteration. With
+    obstacles every candidate is first cut back along the way from x_n to the largest fraction
+    every term allows (`max_step`, which also refuses a state that starts inside an obstacle), and
+    x_n itself joins them: the one of lowest energy wins. A body resting on the ground then starts
+    where it rests, not pushed into the barrier by a step of free fall.
     """
-    start = predicted
+    candidates = [predicted]
     linear = [term for term in objective.terms if term.is_linear]
     if linear:
         _, gradient = energy_and_gradient(
             lambda y: sum(term(y, objective.action) for term in linear), predicted
         )
-        start = predicted - (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
-    motion = start - x_prev
-    fraction = objective.max_step(x_prev, motion)
-    if bool((fraction < 1).any()):
-        start = x_prev + fraction[:, None, None] * motion
-    return start
+        shift = (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
+        candidates.insert(0, predicted - shift)
+    if not _limits_steps(list(objective.terms)):
+        return candidates[0]
+    best, best_energy = x_prev, objective.energy(x_prev)
+    for candidate in candidates:
+        motion = candidate - x_prev
+        candidate = x_prev + objective.max_step(x_prev, motion)[:, None, None] * motion
+        energy = objective.energy(candidate)
+        better = energy < best_energy
+        best = torch.where(better[:, None, None], candidate, best)
+        best_energy = torch.where(better, energy, best_energy)
+    return best
 
 
 GRAD_MODES = ("implicit", "unrolled")
@@ -117,17 +131,17 @@ def step(
         free = scene.free[:, None].to(xp.dtype)
         predicted = xp + scene.dt * vp * free
         with torch.no_grad():
+            terms = step_terms(list(scene.terms), scene.vertex_mass.detach(), scene.dt, xp, vp, scene.free)
             objective = Objective(
-                terms=list(scene.terms),
+                terms=terms,
                 free=scene.free,
                 residual_scale=scene.dt / scene.vertex_mass.detach(),
                 action=None if action is None else action.detach(),
             )
             start = _warm_start(objective, predicted, xp, scene.dt)
-            objective.terms = step_terms(
-                list(scene.terms), scene.vertex_mass.detach(), scene.dt, xp, vp, scene.free, anchor=start
-            )
+            terms[0].anchor = start  # the inertia term
             objective.anchor = start
+            objective.energy_evals = 0
             return solver.minimize(objective, start)
 
     if not wants_grad:

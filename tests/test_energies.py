@@ -14,6 +14,7 @@ from energysim.fem.materials import (
     stable_neo_hookean_density,
     stable_neo_hookean_stress_hessian,
 )
+from energysim.implicit import step_terms
 
 
 def bound_term(term, mesh):
@@ -177,3 +178,65 @@ def test_closed_form_spring_hessians_match_autograd(dim):
         closed = term.element_hessian(x[:, term.element_vertices], action)
         auto = autograd_element_hessian(term, x, action)
         assert torch.allclose(closed, auto, rtol=1e-9, atol=1e-9 * float(auto.abs().max()))
+
+
+def _kernel_cases():
+    """(name, scene-building function) for every term with a closed-form gradient kernel."""
+
+    def elastic(dim):
+        def build(scene):
+            scene.add(es.NeoHookean(1e5, 0.45))
+
+        return build
+
+    def springs(scene):
+        scene.add(es.Springs(stiffness=1e3))
+
+    def actuated(scene):
+        edges = scene.mesh.edges()
+        scene.add(es.ActuatedSprings(edges, torch.arange(edges.shape[0]) % 2, stiffness=1e3))
+
+    def fibres(scene):
+        m = scene.mesh.num_elements
+        fibres = torch.randn(m, scene.dim, dtype=torch.float64)
+        scene.add(es.FibreMuscles(fibres, torch.arange(m) % 2, stiffness=3e5))
+
+    def obstacles(scene):
+        scene.add(es.Ground(-0.2, normal=(0.1, 1.0, 0.2), friction=0.5, barrier_distance=0.5))
+        scene.add(es.SphereObstacle((0.5, -0.8, 0.5), 0.7, barrier_distance=0.5))
+        scene.add(es.BoxObstacle((-0.6, -0.5, -0.6), (-0.1, 0.8, 0.3), barrier_distance=0.5))
+
+    return [
+        ("neo-hookean-2d", 2, elastic(2)),
+        ("neo-hookean-3d", 3, elastic(3)),
+        ("springs", 3, springs),
+        ("actuated-springs", 3, actuated),
+        ("fibre-muscles-2d", 2, fibres),
+        ("fibre-muscles-3d", 3, fibres),
+        ("obstacles-and-friction", 3, obstacles),
+    ]
+
+
+@pytest.mark.parametrize("name, dim, build", _kernel_cases(), ids=[c[0] for c in _kernel_cases()])
+@pytest.mark.parametrize("inverted", [False, True], ids=["deformed", "inverted"])
+def test_closed_form_gradients_match_autograd(name, dim, build, inverted):
+    mesh = small_box(dim)
+    scene = es.Scene(mesh, gravity=(0.0, -9.81, 0.0)[:dim])
+    build(scene)
+    x = mesh.vertices + 0.05 * torch.randn_like(mesh.vertices)
+    if inverted and "obstacles" not in name:
+        x[:, 1] = -x[:, 1]  # every element turned inside out
+    x = x[None]
+    velocity = 0.3 * torch.randn_like(x)
+    # the step's own terms too: inertia and, where obstacles touch, lagged friction
+    previous = x - 0.01 * velocity
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, previous, velocity, scene.free)
+    action = torch.rand(1, 8, dtype=torch.float64) * 2 - 1
+    assert any(type(term).__name__ == "LaggedFriction" for term in terms) or "obstacles" not in name
+    for term in terms:
+        result = term.value_and_gradient(x, action)
+        assert result is not None, type(term).__name__
+        energy, reference = energy_and_gradient(lambda y, t=term: t(y, action), x)
+        torch.testing.assert_close(result[0], energy, rtol=1e-12, atol=1e-12)
+        scale = float(reference.abs().max()) + 1e-300
+        torch.testing.assert_close(result[1], reference, rtol=1e-9, atol=1e-11 * scale)

@@ -38,6 +38,15 @@ def mollified_slip(u: Tensor, smoothing: float) -> Tensor:
     return torch.where(length < smoothing, ramp, length)
 
 
+def mollified_slip_gradient(u: Tensor, smoothing: float) -> Tensor:
+    """∇ₓ f0(‖P(x − x_n)‖) = f1(y)/y · u, shape `[..., d]` (dimensionless); f1/y = (2 − y/ε)/ε below ε."""
+    length, _ = _norm_and_square(u)
+    below = length < smoothing
+    safe_length = torch.where(below, torch.full_like(length, smoothing), length)
+    over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
+    return over_length[..., None] * u
+
+
 def mollified_slip_hessian(u: Tensor, smoothing: float, projector: Tensor) -> Tensor:
     """∇²ₓ f0(‖P(x − x_n)‖) = (f1/y) P + (f1′ − f1/y) ûûᵀ, shape `[..., d, d]` (1/m).
 
@@ -92,6 +101,11 @@ class LaggedFriction(ElementEnergy):
 
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         return self.weight * mollified_slip(self._slip(element_positions), self.smoothing)
+
+    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """μλ f1(y)/y · u per vertex, shape `[B, m, 1, d]`, in N (closed form)."""
+        slip = self._slip(element_positions)
+        return (self.weight[..., None] * mollified_slip_gradient(slip, self.smoothing))[..., None, :]
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-vertex Hessian blocks `[B, m, d, d]`, in N/m (convex: positive semidefinite)."""

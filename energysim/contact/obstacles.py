@@ -20,7 +20,7 @@ from torch import Tensor
 
 from energysim.contact.barrier import barrier, barrier_derivatives, default_barrier_stiffness
 from energysim.contact.friction import LaggedFriction
-from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter
+from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter, scatter_vertices
 from energysim.mesh import SimplexMesh
 from energysim.mesh.simplex import format_indices
 
@@ -137,6 +137,12 @@ class Obstacle(ElementEnergy):
         distance = self.signed_distance(element_positions[..., 0, :])
         return self.barrier_stiffness * self.contact_area * barrier(distance, self.barrier_distance)
 
+    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """κ a b′(d) ∇d per vertex, shape `[B, m, 1, d]`, in N (closed form)."""
+        distance, gradient, _ = self.distance_derivatives(element_positions[..., 0, :])
+        first, _ = barrier_derivatives(distance, self.barrier_distance)
+        return ((self.barrier_stiffness * self.contact_area * first)[..., None] * gradient)[..., None, :]
+
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-vertex blocks κ a (b″ ∇d ∇dᵀ + b′ ∇²d), shape `[B, m, d, d]`, in N/m."""
         distance, gradient, hessian = self.distance_derivatives(element_positions[..., 0, :])
@@ -178,11 +184,9 @@ class Obstacle(ElementEnergy):
 
     def contact_force(self, x: Tensor) -> Tensor:
         """The force the obstacle exerts on every vertex, shape `[B, n, d]`, in N (−∇ of the barrier)."""
-        distance, gradient, _ = self.distance_derivatives(self._vertex_positions(x))
-        first, _ = barrier_derivatives(distance, self.barrier_distance)
-        per_vertex = -(self.barrier_stiffness * self.contact_area * first)[..., None] * gradient
-        out = torch.zeros_like(x)
-        return out.index_add_(1, self.element_vertices[:, 0], per_vertex)
+        return -scatter_vertices(
+            self.element_gradient(x[:, self.element_vertices], None), self.element_vertices, x.shape[1]
+        )
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """This step's friction term, from the state at its start; none if μ = 0 or nothing touches."""

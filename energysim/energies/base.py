@@ -42,6 +42,13 @@ class EnergyTerm(nn.Module):
         """
         return None
 
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
+        """E(x) `[B]` and ∇E(x) `[B, n, d]` from closed-form kernels, without autograd; None where the
+        term has none (the solvers then differentiate `forward`). Kernels are checked against autograd
+        in the tests; they exist because a small scene's step is dominated by per-operation overhead,
+        and a backward pass doubles the operations."""
+        return None
+
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """Terms this one adds to a single step's objective, built from the positions at the step's
         start, `[B, n, d]` (friction, whose normal forces are taken there); default none."""
@@ -69,6 +76,17 @@ class ElementEnergy(EnergyTerm):
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
         return self.element_energy(gather_vertices(x, self.element_vertices), action).sum(dim=-1)
 
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
+        """Uses the subclass's `element_gradient(element_positions, action) -> [B, m, k, d]` (N) if any."""
+        kernel = getattr(self, "element_gradient", None)
+        if kernel is None:
+            return None
+        with torch.no_grad():
+            element_positions = x[:, self.element_vertices]
+            energy = self.element_energy(element_positions, action).sum(dim=-1)
+            gradient = scatter_vertices(kernel(element_positions, action), self.element_vertices, x.shape[1])
+        return energy, gradient
+
 
 class _GatherVertices(torch.autograd.Function):
     # x[:, index] backpropagates through an accumulating index_put, several times slower than
@@ -84,9 +102,23 @@ class _GatherVertices(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: ANN001
         (dofs,) = ctx.saved_tensors
-        batch = grad.shape[0]
-        flat = grad.new_zeros(batch, ctx.size).index_add(1, dofs.reshape(-1), grad.reshape(batch, -1))
-        return flat.reshape(batch, -1, dofs.shape[-1]), None
+        return _scatter_dofs(grad, dofs, ctx.size), None
+
+
+def _scatter_dofs(values: Tensor, dofs: Tensor, size: int) -> Tensor:
+    batch = values.shape[0]
+    flat = values.new_zeros(batch, size).index_add(1, dofs.reshape(-1), values.reshape(batch, -1))
+    return flat.reshape(batch, -1, dofs.shape[-1])
+
+
+def _element_dofs(element_vertices: Tensor, dim: int) -> Tensor:
+    return element_vertices[..., None] * dim + torch.arange(dim, device=element_vertices.device)
+
+
+def scatter_vertices(values: Tensor, element_vertices: Tensor, num_vertices: int) -> Tensor:
+    """Sum per-element vertex values `[B, m, k, d]` onto the vertices: `[B, n, d]` (gather's adjoint)."""
+    dim = values.shape[-1]
+    return _scatter_dofs(values, _element_dofs(element_vertices, dim), num_vertices * dim)
 
 
 def gather_vertices(x: Tensor, element_vertices: Tensor) -> Tensor:
@@ -99,9 +131,7 @@ def gather_vertices(x: Tensor, element_vertices: Tensor) -> Tensor:
     Returns:
         shape `[B, m, k, d]`.
     """
-    dim = x.shape[-1]
-    dofs = element_vertices[..., None] * dim + torch.arange(dim, device=x.device)
-    return _GatherVertices.apply(x, dofs)
+    return _GatherVertices.apply(x, _element_dofs(element_vertices, x.shape[-1]))
 
 
 def as_parameter(value: float | Tensor, name: str) -> Tensor:

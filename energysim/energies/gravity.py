@@ -38,3 +38,9 @@ class Gravity(EnergyTerm):
 
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
         return -(self.vertex_mass[:, None] * x * self.acceleration).sum(dim=(-1, -2))
+
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """E and ∇E = −m g, in closed form."""
+        with torch.no_grad():
+            gradient = -(self.vertex_mass[:, None] * self.acceleration).expand_as(x)
+            return self.forward(x), gradient

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from energysim.energies.base import EnergyTerm
@@ -39,6 +40,12 @@ class Inertia(EnergyTerm):
         displacement = x - self.anchor
         lead = self.anchor - self.predicted_positions
         return (weight * displacement * (displacement + 2.0 * lead)).sum(dim=(-1, -2))
+
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """E and ∇E = M (x − x̂)/h², in closed form."""
+        with torch.no_grad():
+            gradient = self.vertex_mass[:, None] / self.dt**2 * (x - self.predicted_positions)
+            return self.forward(x), gradient
 
     def hessian_diagonal(self) -> Tensor:
         """The (constant, diagonal) Hessian M/h², per vertex, shape `[n]`, in kg/s²."""

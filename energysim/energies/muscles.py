@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from energysim.energies.springs import Springs, spring_energy, spring_hessian_blocks, spring_length
+from energysim.energies.springs import Springs
 from energysim.mesh import SimplexMesh
 
 
@@ -51,7 +51,7 @@ class ActuatedSprings(Springs):
         if tuple(self.actuators.shape) != (count,) or bool((self.actuators < 0).any()):
             raise ValueError(f"actuators must be non-negative integers of shape [{count}]")
 
-    def actuated_rest_length(self, action: Tensor | None) -> Tensor:
+    def target_length(self, action: Tensor | None) -> Tensor:
         """ℓ₀ (1 − c·clamp(a, −1, 1)) per spring, shape `[B, s]` (or `[s]` without an action), in m."""
         if action is None:
             return self.rest_length
@@ -61,12 +61,3 @@ class ActuatedSprings(Springs):
             )
         activation = action[:, self.actuators].clamp(-1.0, 1.0)
         return self.rest_length * (1.0 - self.max_contraction * activation)
-
-    def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        _, length = spring_length(element_positions, self.rest_length)
-        return spring_energy(length, self.stiffness, self.actuated_rest_length(action))
-
-    def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """Exact per-spring Hessian blocks `[B, s, 2d, 2d]` (closed form; see `spring_hessian_blocks`)."""
-        delta, length = spring_length(element_positions, self.rest_length)
-        return spring_hessian_blocks(delta, length, self.stiffness, self.actuated_rest_length(action))

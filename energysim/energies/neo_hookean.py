@@ -10,6 +10,7 @@ from energysim.fem.kinematics import deformation_gradient, shape_gradients, simp
 from energysim.fem.materials import (
     lame_parameters,
     stable_neo_hookean_density,
+    stable_neo_hookean_stress,
     stable_neo_hookean_stress_hessian,
 )
 from energysim.mesh import SimplexMesh
@@ -49,6 +50,7 @@ class NeoHookean(ElementEnergy):
         # [m, d·d, (d+1)·d]. With √V folded in, K_e = (√V S)ᵀ ∂²ψ/∂F² (√V S) needs no extra pass.
         dim = mesh.dim
         grad_n = shape_gradients(rest_edge_inverse)
+        self.register_buffer("shape_gradient", grad_n, persistent=False)
         eye = torch.eye(dim, dtype=grad_n.dtype)
         strain_map = (eye[None, :, None, None, :] * grad_n.transpose(1, 2)[:, None, :, :, None]).flatten(3)
         weighted = strain_map.flatten(1, 2) * rest_volume.sqrt()[:, None, None]
@@ -63,6 +65,13 @@ class NeoHookean(ElementEnergy):
         mu, lam = self.lame()
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
         return self.rest_volume * stable_neo_hookean_density(F, mu, lam)
+
+    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """Per-element vertex forces' negatives V P ∇N_b, shape `[B, m, d+1, d]`, in N (closed form)."""
+        mu, lam = self.lame()
+        F = deformation_gradient(element_positions, self.rest_edge_inverse)
+        stress = stable_neo_hookean_stress(F, mu, lam) * self.rest_volume[:, None, None]
+        return self.shape_gradient @ stress.transpose(-1, -2)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.

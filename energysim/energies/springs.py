@@ -83,11 +83,22 @@ class Springs(ElementEnergy):
         self.register_buffer("element_vertices", edges.contiguous())
         self.register_buffer("rest_length", rest_length)
 
+    def target_length(self, action: Tensor | None) -> Tensor:
+        """The length each spring is at rest at under `action`, in m: ℓ₀ here (actuators change it)."""
+        return self.rest_length
+
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         _, length = spring_length(element_positions, self.rest_length)
-        return spring_energy(length, self.stiffness, self.rest_length)
+        return spring_energy(length, self.stiffness, self.target_length(action))
+
+    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
+        """∂E/∂x of both ends, k(ℓ − ℓ₀) (∓n), shape `[B, s, 2, d]`, in N (closed form)."""
+        delta, length = spring_length(element_positions, self.rest_length)
+        tension = self.stiffness * (length - self.target_length(action)) / length
+        pull = tension[..., None] * delta
+        return torch.stack([-pull, pull], dim=-2)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-spring Hessian blocks `[B, s, 2d, 2d]` (closed form; see `spring_hessian_blocks`)."""
         delta, length = spring_length(element_positions, self.rest_length)
-        return spring_hessian_blocks(delta, length, self.stiffness, self.rest_length)
+        return spring_hessian_blocks(delta, length, self.stiffness, self.target_length(action))

@@ -106,6 +106,36 @@ def stable_neo_hookean_density(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     )
 
 
+def cofactor_matrix(F: Tensor) -> Tensor:
+    """cof F = ∂J/∂F (= J F⁻ᵀ where F is invertible, but defined for every F), shape `[..., d, d]`."""
+    if F.shape[-1] == 2:
+        entries = [F[..., 1, 1], -F[..., 1, 0], -F[..., 0, 1], F[..., 0, 0]]
+        return torch.stack(entries, dim=-1).reshape(F.shape)
+    c0, c1, c2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
+    # columns of cof F are cross products of the other two columns of F
+    columns = [torch.linalg.cross(c1, c2), torch.linalg.cross(c2, c0), torch.linalg.cross(c0, c1)]
+    return torch.stack(columns, dim=-1)
+
+
+def stable_neo_hookean_stress(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
+    """The first Piola–Kirchhoff stress P = ∂ψ/∂F of `stable_neo_hookean_density`, in Pa.
+
+    From ψ = 3μ'/4 (s/2 − v) + λ'/2 v² + μ'/2 f(s/4) with ∂s/∂F = 2F, ∂v/∂F = cof F and
+    f'(y) = y/(1 + y): P = 3μ'/4 (F − cof F) + λ' v cof F + μ'/4 · y/(1 + y) · F, y = s/4.
+    A closed form for speed (the solvers' gradients); the tests check it against autograd.
+
+    Args:
+        F: shape `[..., d, d]`; mu, lam: Pa, broadcastable to `[...]`.
+    """
+    mu_smith, lam_smith, _ = smith_parameters(mu, lam)
+    stretch_excess, volume_excess, _ = _invariant_excesses(F)
+    cofactor = cofactor_matrix(F)
+    y = 0.25 * stretch_excess
+    along_f = 0.75 * mu_smith + 0.25 * mu_smith * y / (1.0 + y)
+    along_cofactor = lam_smith * volume_excess - 0.75 * mu_smith
+    return along_f[..., None, None] * F + along_cofactor[..., None, None] * cofactor
+
+
 def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     """∂²ψ/∂F² of `stable_neo_hookean_density`, the exact (unprojected) tangent stiffness.
 
@@ -126,14 +156,7 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
     mu_smith, lam_smith, alpha = smith_parameters(mu, lam)
     stretch_excess, volume_excess, _ = _invariant_excesses(F)
     flat = F.reshape(*F.shape[:-2], dim * dim)
-    if dim == 2:
-        cofactor = torch.stack([F[..., 1, 1], -F[..., 1, 0], -F[..., 0, 1], F[..., 0, 0]], dim=-1)
-    else:
-        c0, c1, c2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
-        # columns of cof F are cross products of the other two columns of F
-        cofactor = torch.stack(
-            [torch.linalg.cross(c1, c2), torch.linalg.cross(c2, c0), torch.linalg.cross(c0, c1)], dim=-1
-        ).reshape(flat.shape)
+    cofactor = cofactor_matrix(F).reshape(flat.shape)
     # Built with few full-size temporaries: at 50k elements each one is tens of MB, and their
     # allocation, not the arithmetic, dominated. Both rank-one terms come from one batched product.
     shape = flat.shape[:-1]

@@ -138,7 +138,14 @@ class NewtonCG(Solver):
         operator = objective.hessian(
             x, use_element_blocks=self.hessian == "elements", project=self.project_hessian
         )
-        precondition = self._preconditioner(operator, x, objective)
+        built: list[Callable[[Tensor], Tensor]] = []
+
+        def precondition(r: Tensor) -> Tensor:
+            # built on first use: when the dense solve succeeds, nothing needs it
+            if not built:
+                built.append(self._preconditioner(operator, x, objective))
+            return built[0](r)
+
         direction, solved = self._direct(operator, -gradient, x, wanted)
         if (wanted & ~solved).any():
             unsolved = wanted & ~solved
