@@ -40,6 +40,7 @@ class Rollout:
         gravity: the scene's acceleration of gravity, shape `[d]`, in m/s².
         history: per-step diagnostics, name -> shape `[S + 1, ...]`, entry k after step k (0: initial).
         vtk: the ``.pvd`` written, or None when no output folder was given.
+        actions: the action at each saved frame's time, shape `[F, a]`, or None for an unactuated run.
     """
 
     times: Tensor
@@ -52,6 +53,7 @@ class Rollout:
     gravity: Tensor
     history: dict[str, Tensor]
     vtk: Path | None = None
+    actions: Tensor | None = None
 
 
 def make_solver(name: str, tol: float) -> es.Solver:
@@ -112,17 +114,21 @@ def simulate(
     out: Path | None = None,
     frames_every: int = 1,
     progress: bool = True,
+    action: Callable[[float], Tensor] | None = None,
 ) -> Rollout:
     """Step `state` for `seconds` (rounded to whole steps), recording `observe(x, v)` after every step.
 
     Saves every `frames_every`-th state and the last one; with `out`, writes them as VTK frames
-    (``velocity`` point data, ``energy_density`` cell data) and a ``frame.pvd`` into `out`.
+    (``velocity`` point data, ``energy_density`` cell data) and a ``frame.pvd`` into `out`. With
+    `action`, the step from t − h to t is taken with `action(t)` (t in s): implicit Euler balances
+    the forces at the end of the step, so that is where the muscles' command belongs.
     """
     if frames_every < 1:
         raise ValueError(f"frames_every must be >= 1, got {frames_every}")
     steps = max(1, round(seconds / scene.dt))
     series = None if out is None else VTKSeries(out, cells=scene.mesh.elements, name="frame")
     frames: list[tuple[int, Tensor, Tensor]] = []
+    frame_actions: list[Tensor] = []
     records: list[dict[str, Tensor]] = []
     stats: list[es.SolverResult] = []
     walls: list[float] = []
@@ -132,6 +138,8 @@ def simulate(
         records.append(observe(x, v))
         if k % frames_every == 0 or k == steps:
             frames.append((k, x, v))
+            if action is not None:
+                frame_actions.append(action(k * scene.dt))
             if series is not None:
                 _, psi = deformation(scene, x)
                 series.write(k * scene.dt, x, point_data={"velocity": v}, cell_data={"energy_density": psi})
@@ -139,7 +147,7 @@ def simulate(
     record(0, state)
     for k in tqdm(range(1, steps + 1), desc="steps", disable=not progress, leave=False):
         start = time.perf_counter()
-        result = es.step(scene, state)
+        result = es.step(scene, state, None if action is None else action(k * scene.dt))
         walls.append(time.perf_counter() - start)
         state = result.state
         stats.append(result.stats)
@@ -157,6 +165,7 @@ def simulate(
         gravity=gravity(scene),
         history={name: torch.stack([r[name] for r in records]) for name in records[0]},
         vtk=None if series is None else series.pvd_path,
+        actions=torch.stack(frame_actions) if frame_actions else None,
     )
 
 
@@ -193,7 +202,8 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     solver = rollout.stats[0]
     lines = [
         f"{name}: {len(rollout.stats)} steps of h = {rollout.dt:.4g} s, {scene.num_vertices} vertices, "
-        f"{scene.mesh.num_elements} tets, {solver.solver} (tol {solver.tol:.0e} m/s)",
+        f"{scene.mesh.num_elements} {'tets' if scene.dim == 3 else 'triangles'}, "
+        f"{solver.solver} (tol {solver.tol:.0e} m/s)",
         f"  median {1e3 * statistics.median(rollout.step_seconds.tolist()):.1f} ms per step; "
         f"iterations per step mean {statistics.fmean(iterations):.2f}, max {max(iterations)}; "
         f"final residual {rollout.stats[-1].residual:.2e} m/s; "

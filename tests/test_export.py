@@ -14,8 +14,19 @@ import meshio
 import numpy as np
 import pytest
 import torch
+from conftest import random_rotation
 
-from energysim.export import VTKSeries, render_gif, render_mp4, render_png, write_pvd, write_vtu
+import energysim as es
+from energysim.energies.fibre_muscles import FibreMuscles
+from energysim.export import (
+    VTKSeries,
+    export_rollout,
+    render_gif,
+    render_mp4,
+    render_png,
+    write_pvd,
+    write_vtu,
+)
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
@@ -380,3 +391,168 @@ def test_a_new_series_removes_stale_frames_of_the_same_name(tmp_path):
     short_run.write(0.0, vertices)
     assert sorted(p.name for p in tmp_path.glob("frame_*.vtu")) == ["frame_00000.vtu"]
     assert (tmp_path / "other_00000.vtu").exists()
+
+
+# ---------------------------------------------------------------------------------------------- rollouts
+
+
+def _muscle_scene(dim: int) -> tuple[es.Scene, torch.Tensor]:
+    """A small box with elasticity and fibre muscles: actuator e mod 3 − 1 (so a third are passive)."""
+    if dim == 3:
+        mesh = es.TetMesh.box(size=(0.3, 0.1, 0.1), cells=(3, 1, 1))
+    else:
+        mesh = es.TriMesh.box(size=(0.3, 0.1), cells=(3, 1))
+    scene = es.Scene(mesh, dt=0.01, gravity=None)
+    scene.add(es.NeoHookean(youngs_modulus=1e5, poissons_ratio=0.3))
+    actuators = torch.arange(mesh.num_elements) % 3 - 1
+    fibres = torch.zeros(mesh.num_elements, dim, dtype=torch.float64)
+    fibres[:, 0] = 1.0
+    scene.add(FibreMuscles(fibres, actuators, stiffness=1e5))
+    return scene, actuators
+
+
+def _rigid_states(scene: es.Scene, frames: int) -> torch.Tensor:
+    """`frames` states `[F, 2·num_dofs]`, each a rotation and translation of the rest shape."""
+    rest = scene.rest_positions
+    states = []
+    for k in range(frames):
+        rotation = random_rotation(scene.dim)
+        x = rest @ rotation.T + 0.1 * k
+        v = torch.full_like(rest, 0.5 * k) + rest
+        states.append(scene.initial_state(positions=x, velocities=v))
+    return torch.stack(states)
+
+
+def _frames(pvd: Path) -> list[tuple[float, Path]]:
+    sets = ET.parse(pvd).getroot().findall("./Collection/DataSet")
+    return [(float(d.get("timestep")), pvd.parent / d.get("file")) for d in sets]
+
+
+@pytest.mark.parametrize("dim", [3, 2])
+def test_export_rollout_round_trips_positions_velocities_and_rigid_motions(tmp_path: Path, dim: int) -> None:
+    pv = pytest.importorskip("pyvista")
+    scene, actuators = _muscle_scene(dim)
+    states = _rigid_states(scene, 4)
+    times = [0.0, 0.1, 0.25, 0.3]
+    actions = torch.tensor([[0.3, -0.7], [1.0, 0.0], [-0.2, 0.5], [0.9, -1.0]], dtype=torch.float64)
+    pvd = export_rollout(scene, states, tmp_path / "run", actions=actions, times=times)
+
+    assert pvd == tmp_path / "run" / "frame.pvd"
+    listed = _frames(pvd)
+    assert [t for t, _ in listed] == times  # every frame, with its exact time
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(
+        ["frame.pvd"] + [p.name for _, p in listed]
+    )
+    x, v = scene.split_state(states)
+    n, m = scene.num_vertices, scene.mesh.num_elements
+    pad = np.zeros((n, 3 - dim))
+    reader = pv.get_reader(str(pvd))
+    assert list(reader.time_values) == times
+    for k, (time, path) in enumerate(listed):
+        frame = meshio.read(path)
+        np.testing.assert_allclose(frame.points, np.c_[x[k].numpy(), pad], rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(
+            frame.cells_dict["tetra" if dim == 3 else "triangle"], scene.mesh.elements
+        )
+        np.testing.assert_allclose(frame.point_data["velocity"], np.c_[v[k].numpy(), pad], rtol=0, atol=1e-14)
+        rest = scene.rest_positions.numpy()
+        np.testing.assert_allclose(
+            frame.point_data["displacement"], np.c_[x[k].numpy() - rest, pad], atol=1e-14
+        )
+        # a rigid motion stores no elastic energy: zero up to rounding of E (1e5 Pa) times strains ~1e-16
+        assert np.abs(frame.cell_data["strain_energy_density"][0]).max() < 1e-8
+        # activation is the element's actuator's action; passive elements (actuator -1) show 0
+        activation = frame.cell_data["activation"][0]
+        actuated = actuators.numpy() >= 0
+        np.testing.assert_array_equal(frame.cell_data["actuator"][0], actuators.numpy())
+        np.testing.assert_allclose(
+            activation[actuated], actions[k, actuators[actuated]].numpy(), rtol=0, atol=0
+        )
+        assert (activation[~actuated] == 0).all()
+        reader.set_active_time_value(time)
+        grid = reader.read()[0]
+        assert grid.n_points == n and grid.n_cells == m
+        np.testing.assert_allclose(grid.points, frame.points, rtol=0, atol=0)
+        assert grid.cell_data["strain_energy_density"].shape == (m,)
+        assert grid.cell_data["activation"].shape == (m,)
+
+
+def test_export_rollout_strain_energy_integrates_to_the_elastic_energy(tmp_path: Path) -> None:
+    scene, _ = _muscle_scene(3)
+    rest = scene.rest_positions
+    stretched = rest * torch.tensor([1.2, 0.95, 1.0], dtype=torch.float64)  # a uniform stretch
+    bent = rest + 0.02 * torch.randn_like(rest)
+    states = torch.stack([scene.initial_state(positions=x) for x in (stretched, bent)])
+    pvd = export_rollout(scene, states, tmp_path)
+    (neo_hookean,) = [term for term in scene.terms if isinstance(term, es.NeoHookean)]
+    for (_, path), x in zip(_frames(pvd), (stretched, bent), strict=True):
+        density = meshio.read(path).cell_data["strain_energy_density"][0]
+        volume = neo_hookean.rest_volume.numpy()
+        # Σ_e ψ_e V_e is the term's energy in J
+        assert float((density * volume).sum()) == pytest.approx(float(neo_hookean(x[None])[0]), rel=1e-12)
+        assert (density > 0).all()
+    # a uniform stretch strains every element alike
+    first = meshio.read(_frames(pvd)[0][1]).cell_data["strain_energy_density"][0]
+    np.testing.assert_allclose(first, first[0], rtol=1e-10)
+    # without actions there is no activation, but the muscle layout is there
+    assert "activation" not in meshio.read(_frames(pvd)[0][1]).cell_data
+    assert "actuator" in meshio.read(_frames(pvd)[0][1]).cell_data
+
+
+def test_export_rollout_of_es_rollout_shows_each_steps_action(tmp_path: Path) -> None:
+    scene, actuators = _muscle_scene(3)
+    steps = 5
+    actions = torch.linspace(-1.0, 1.0, 2 * steps, dtype=torch.float64).reshape(steps, 2)
+    states = es.rollout(scene, scene.initial_state(), actions)
+    assert states.shape[0] == steps + 1
+    pvd = export_rollout(scene, list(states), tmp_path, actions=actions, every=2, name="walk")
+    listed = _frames(pvd)
+    # every 2nd state and the last: 0, 2, 4, 5 at k·h
+    assert [p.name for _, p in listed] == [f"walk_{k:05d}.vtu" for k in range(4)]
+    np.testing.assert_allclose([t for t, _ in listed], [0.0, 0.02, 0.04, 0.05], rtol=0, atol=1e-15)
+    actuated = actuators >= 0
+    x, _ = scene.split_state(states)
+    for (_, path), k in zip(listed, (0, 2, 4, 5), strict=True):
+        frame = meshio.read(path)
+        np.testing.assert_allclose(frame.points, x[k].numpy(), rtol=0, atol=1e-14)
+        # state k was solved with the action of step k - 1; the initial state had none
+        expected = torch.zeros(2, dtype=torch.float64) if k == 0 else actions[k - 1]
+        np.testing.assert_allclose(frame.cell_data["activation"][0][actuated], expected[actuators[actuated]])
+
+
+def test_export_rollout_spring_activation_is_the_mean_over_a_vertexs_springs(tmp_path: Path) -> None:
+    mesh = es.TriMesh.box(size=(1.0, 1.0), cells=(1, 1))
+    scene = es.Scene(mesh, dt=0.01, gravity=None)
+    edges = torch.tensor([[0, 1], [1, 3], [0, 3]])
+    scene.add(es.ActuatedSprings(edges, actuators=torch.tensor([0, 1, 1]), stiffness=10.0))
+    states = scene.initial_state().expand(2, -1)
+    actions = torch.tensor([[0.5, -0.25], [2.0, 0.0]], dtype=torch.float64)  # 2.0 is clamped to 1
+    pvd = export_rollout(scene, states, tmp_path, actions=actions)
+    frames = [meshio.read(p) for _, p in _frames(pvd)]
+    # vertex 0: springs 0 (a0) and 2 (a1); vertex 1: 0 and 1; vertex 2: none; vertex 3: 1 and 2
+    np.testing.assert_allclose(frames[0].point_data["spring_activation"], [0.125, 0.125, 0.0, -0.25])
+    np.testing.assert_allclose(frames[1].point_data["spring_activation"], [0.5, 0.5, 0.0, 0.0])
+    # no elasticity and no fibre muscles: those arrays are left out
+    assert frames[0].cell_data == {}
+
+
+def test_export_rollout_rejects_bad_input_and_writes_nothing(tmp_path: Path) -> None:
+    scene, _ = _muscle_scene(3)
+    states = _rigid_states(scene, 3)
+    with pytest.raises(ValueError, match="batch entry"):
+        export_rollout(scene, states[:, None].expand(3, 2, -1), tmp_path)
+    with pytest.raises(ValueError, match=r"one per step\) or \[3, a\]"):
+        export_rollout(scene, states, tmp_path, actions=torch.zeros(1, 2))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        export_rollout(scene, states, tmp_path, times=[0.0, 0.2, 0.1])
+    with pytest.raises(ValueError, match="one per state"):
+        export_rollout(scene, states, tmp_path, times=[0.0, 0.2])
+    with pytest.raises(ValueError, match="every"):
+        export_rollout(scene, states, tmp_path, every=0)
+    with pytest.raises(ValueError, match="NaN"):
+        export_rollout(scene, torch.where(states > 0.2, float("nan"), states), tmp_path)
+    with pytest.raises(ValueError, match="need 2"):
+        export_rollout(scene, states, tmp_path, actions=torch.zeros(3, 1))
+    with pytest.raises(ValueError, match="empty"):
+        export_rollout(scene, states[:0], tmp_path)
+    assert list(tmp_path.iterdir()) == []

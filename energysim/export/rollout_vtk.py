@@ -1,0 +1,216 @@
+"""Any rollout of a scene as a VTK time series: positions, velocities, strain energy and activations.
+
+    pvd = export_rollout(scene, states, "out/run", actions=actions)   # open the .pvd in ParaView
+
+The arrays come from the scene's own terms: strain energy density from its `NeoHookean` terms,
+activation from its `FibreMuscles` (per element) and `ActuatedSprings` (per vertex). Nothing here
+steps the scene: it reads states that a rollout already produced.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from energysim.energies import ActuatedSprings, NeoHookean
+from energysim.energies.fibre_muscles import FibreMuscles
+from energysim.viewer.scalars import strain_energy_density
+
+from .vtk import VTKSeries
+
+if TYPE_CHECKING:
+    from energysim.scene import Scene
+
+
+def _stack(values: Tensor | Sequence[Tensor], name: str) -> Tensor:
+    if isinstance(values, Tensor):
+        return values.detach()
+    values = list(values)
+    if not values:
+        raise ValueError(f"{name} is empty")
+    return torch.stack([torch.as_tensor(v).detach() for v in values])
+
+
+def _per_state_actions(actions: Tensor, num_states: int) -> Tensor:
+    """One action per state, `[F, a]`: a row per state is kept; a row per step shifts by one.
+
+    With one action per step (as `energysim.rollout` takes them) state k > 0 was solved with the
+    action of step k − 1, so that is the activation it shows; the initial state had none (zero).
+    """
+    if actions.ndim != 2 or actions.shape[0] not in (num_states, num_states - 1):
+        raise ValueError(
+            f"actions must have shape [{num_states - 1}, a] (one per step) or [{num_states}, a] "
+            f"(one per state), got {tuple(actions.shape)}"
+        )
+    if actions.shape[0] == num_states:
+        return actions
+    return torch.cat([torch.zeros_like(actions[:1]), actions])
+
+
+def element_activation(scene: Scene, actions: Tensor) -> Tensor | None:
+    """Activation of every element in each frame, shape `[F, m]`, dimensionless in [−1, 1].
+
+    From the scene's `FibreMuscles` terms: the action of each element's actuator, clamped to [−1, 1]
+    as the muscle applies it (1: full contraction); averaged where several terms drive one element,
+    and 0 for passive elements. None when the scene has no `FibreMuscles` term.
+
+    Args:
+        scene: the model.
+        actions: one action per frame, shape `[F, a]`.
+    """
+    terms = [term for term in scene.terms if isinstance(term, FibreMuscles)]
+    if not terms:
+        return None
+    frames, count = actions.shape[0], scene.mesh.num_elements
+    total = actions.new_zeros(frames, count)
+    drivers = actions.new_zeros(count)
+    for term in terms:
+        _check_width(actions, term.num_actuators, type(term).__name__)
+        activation = actions[:, term.element_actuator].clamp(-1.0, 1.0)
+        total = total.index_add(1, term.element_index, activation)
+        drivers = drivers.index_add(0, term.element_index, torch.ones_like(activation[0]))
+    return total / drivers.clamp_min(1.0)
+
+
+def vertex_spring_activation(scene: Scene, actions: Tensor) -> Tensor | None:
+    """Mean activation of the actuated springs at each vertex per frame, shape `[F, n]`, in [−1, 1].
+
+    From the scene's `ActuatedSprings` terms (clamped as they apply it); 0 at vertices without an
+    actuated spring. None when the scene has none.
+
+    Args:
+        scene: the model.
+        actions: one action per frame, shape `[F, a]`.
+    """
+    terms = [term for term in scene.terms if isinstance(term, ActuatedSprings)]
+    if not terms:
+        return None
+    frames, count = actions.shape[0], scene.num_vertices
+    total = actions.new_zeros(frames, count)
+    springs = actions.new_zeros(count)
+    for term in terms:
+        _check_width(actions, term.num_actuators, type(term).__name__)
+        activation = actions[:, term.actuators].clamp(-1.0, 1.0)
+        ends = term.element_vertices.reshape(-1)
+        total = total.index_add(1, ends, activation.repeat_interleave(2, dim=1))
+        springs = springs.index_add(0, ends, torch.ones_like(ends, dtype=actions.dtype))
+    return total / springs.clamp_min(1.0)
+
+
+def _check_width(actions: Tensor, needed: int, what: str) -> None:
+    if actions.shape[1] < needed:
+        raise ValueError(f"actions have {actions.shape[1]} entries; the scene's {what} need {needed}")
+
+
+def export_rollout(
+    scene: Scene,
+    states: Tensor | Sequence[Tensor],
+    folder: str | os.PathLike[str],
+    *,
+    actions: Tensor | Sequence[Tensor] | None = None,
+    times: Tensor | Sequence[float] | None = None,
+    every: int = 1,
+    name: str = "frame",
+) -> Path:
+    """Write states of `scene` as ``{name}_00000.vtu``, … and ``{name}.pvd`` in `folder`; return the ``.pvd``.
+
+    Each ``.vtu`` holds the positions (the points, in m) with point data ``velocity`` (m/s) and
+    ``displacement`` from the rest shape (m), and when the scene has the terms for them cell data
+    ``strain_energy_density`` (J/m³, J/m² per metre of depth in 2D; `NeoHookean`), ``actuator`` and
+    ``activation`` (`FibreMuscles`; actuator −1: passive) and point data ``spring_activation``
+    (`ActuatedSprings`). Activations need `actions`; without them they are left out. Files are
+    written atomically, frame by frame, and an older series of the same name in `folder` is replaced.
+
+    Args:
+        scene: the model the states belong to.
+        states: F states, a stack `[F, 2·num_dofs]` or a list of `[2·num_dofs]` (one batch entry:
+            index a batched rollout first).
+        folder: output folder (created).
+        actions: `[F − 1, a]` (one per step, as `energysim.rollout` takes them: frame k shows the action
+            of the step that ended there, frame 0 zero) or `[F, a]` (one per state).
+        times: time of each state in s, shape `[F]`, strictly increasing; default k · `scene.dt`.
+        every: write every `every`-th state, and always the last.
+        name: file stem.
+
+    Raises:
+        ValueError: no states, states, actions or times of the wrong shape, non-finite states, `every` < 1.
+    """
+    states = _stack(states, "states")
+    if states.ndim != 2:
+        raise ValueError(
+            f"states must have shape [F, {2 * scene.num_dofs}] (or be a list of [{2 * scene.num_dofs}]); "
+            f"got {tuple(states.shape)}: index one batch entry of a batched rollout first"
+        )
+    if states.shape[0] == 0:
+        raise ValueError("states is empty: nothing to export")
+    if not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"every must be an integer >= 1, got {every!r}")
+    states = states.to(scene.vertex_mass)
+    x, v = scene.split_state(states)
+    frames = x.shape[0]
+    if not (torch.isfinite(x).all() and torch.isfinite(v).all()):
+        bad = torch.nonzero(~(torch.isfinite(x).all(dim=(1, 2)) & torch.isfinite(v).all(dim=(1, 2))))
+        raise ValueError(f"states {bad.reshape(-1)[:10].tolist()} hold NaN or inf")
+    if times is None:
+        time_values = [k * scene.dt for k in range(frames)]
+    else:
+        # kept as Python floats: a list through torch would be rounded to float32
+        values = times.detach().reshape(-1).tolist() if isinstance(times, Tensor) else list(times)
+        time_values = [float(t) for t in values]
+        if len(time_values) != frames:
+            raise ValueError(f"times must have {frames} entries (one per state), got {len(time_values)}")
+        if not all(math.isfinite(t) for t in time_values):
+            raise ValueError("times must be finite")
+        if any(later <= earlier for earlier, later in zip(time_values[:-1], time_values[1:], strict=True)):
+            raise ValueError("times must be strictly increasing")
+
+    cell_data: dict[str, Tensor] = {}
+    point_data: dict[str, Tensor] = {}
+    if any(isinstance(term, NeoHookean) for term in scene.terms):
+        cell_data["strain_energy_density"] = strain_energy_density(scene, states)
+    if actions is not None:
+        per_state = _per_state_actions(_stack(actions, "actions").to(x), frames)
+        fibre_activation = element_activation(scene, per_state)
+        if fibre_activation is not None:
+            cell_data["activation"] = fibre_activation
+        spring_activation = vertex_spring_activation(scene, per_state)
+        if spring_activation is not None:
+            point_data["spring_activation"] = spring_activation
+    actuator = _element_actuators(scene)
+
+    series = VTKSeries(folder, scene.mesh.elements, name=name)
+    rest = scene.rest_positions
+    for k in sorted({*range(0, frames, every), frames - 1}):
+        frame_cells = {key: value[k] for key, value in cell_data.items()}
+        if actuator is not None:
+            frame_cells["actuator"] = actuator
+        series.write(
+            time_values[k],
+            x[k],
+            point_data={
+                "velocity": v[k],
+                "displacement": x[k] - rest,
+                **{key: value[k] for key, value in point_data.items()},
+            },
+            cell_data=frame_cells,
+        )
+    return series.pvd_path
+
+
+def _element_actuators(scene: Scene) -> Tensor | None:
+    """The actuator of every element from the scene's `FibreMuscles`, shape `[m]`, −1 passive."""
+    actuator = None
+    for term in scene.terms:
+        if isinstance(term, FibreMuscles):
+            mine = term.actuators
+            actuator = mine if actuator is None else torch.where(mine >= 0, mine, actuator)
+    return actuator
+
+
+__all__ = ["element_activation", "export_rollout", "vertex_spring_activation"]

@@ -1,0 +1,164 @@
+"""Benchmark the walking creatures: time per step, real-time factor, distance, and the error beside them.
+
+Each creature walks its default gait (`walk_NAME.SPEC`) at its default h from rest for `--seconds`; the
+same run is repeated at a 10× tighter solver tolerance as the reference, and the error is the distance
+between the two final centres of mass (what the looser tolerance costs in where the creature ends up).
+Timing is the wall time of each `es.step` call; the real-time factor is h / (median step time), > 1:
+faster than real time. Runs use `--threads` intra-op threads (default 1, best for meshes this small).
+
+Run:  python scripts/bench_creatures.py                               # every creature, 1 s each
+      python scripts/bench_creatures.py --creatures worm --seconds 0.5  # quick
+Writes: <out>/bench_creatures.csv, <out>/bench_creatures.md (the table) and <out>/bench_creatures.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from _locomotion import body_length, build_scene, default_gait, run
+
+from energysim.creatures import CREATURES, load_creature
+
+REFERENCE_FACTOR = 10.0  # the reference run's tolerance is this many times tighter
+
+
+@dataclass(frozen=True)
+class Row:
+    """One creature's line of the table."""
+
+    creature: str
+    elements: int
+    kind: str
+    dt: float
+    steps: int
+    ms_per_step: float
+    realtime_factor: float
+    iterations: float
+    converged: str
+    distance_m: float
+    body_lengths: float
+    tol: float
+    error_m: float
+
+
+def bench(name: str, seconds: float, tol: float | None) -> Row:
+    """Walk `name` for `seconds` at `tol` (default: the script's) and at `tol` / 10; one table row."""
+    spec = importlib.import_module(f"walk_{name}").SPEC
+    creature = load_creature(name)
+    gait = default_gait(spec, creature)
+    tol = spec.tol if tol is None else tol
+    scene = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol)
+    start = time.perf_counter()
+    rollout = run(scene, gait, seconds, progress=False)
+    wall = time.perf_counter() - start
+    reference = run(
+        build_scene(creature, spec.dt, spec.friction, "newton-cg", tol / REFERENCE_FACTOR),
+        gait,
+        seconds,
+        progress=False,
+    )
+    com, com_reference = rollout.history["com"], reference.history["com"]
+    median = statistics.median(rollout.step_seconds.tolist())
+    distance = float(com[-1, 0] - com[0, 0])
+    steps = len(rollout.stats)
+    print(f"{name}: {steps} steps in {wall:.1f} s wall")
+    return Row(
+        creature=name,
+        elements=scene.mesh.num_elements,
+        kind="tets" if scene.dim == 3 else "triangles",
+        dt=scene.dt,
+        steps=steps,
+        ms_per_step=1e3 * median,
+        realtime_factor=scene.dt / median,
+        iterations=statistics.fmean(s.iterations for s in rollout.stats),
+        converged=f"{sum(s.converged for s in rollout.stats)}/{steps}",
+        distance_m=distance,
+        body_lengths=distance / body_length(scene),
+        tol=tol,
+        error_m=float((com[-1] - com_reference[-1]).norm()),
+    )
+
+
+def markdown(rows: list[Row], seconds: float) -> str:
+    """The results as a markdown table."""
+    lines = [
+        f"Walking creatures, {seconds:g} s of simulated time each from rest, float64, "
+        f"{torch.get_num_threads()} thread(s), Newton–CG; error = |final centre of mass − that of a run at "
+        f"{REFERENCE_FACTOR:g}× tighter tolerance|.",
+        "",
+        "| creature | elements | h (s) | median ms/step | real-time factor | iterations/step | converged "
+        "| distance (m) | body lengths | tol (m/s) | error (m) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.creature} | {r.elements} {r.kind} | {r.dt:.4g} | {r.ms_per_step:.1f} | "
+            f"{r.realtime_factor:.2f} | {r.iterations:.1f} | {r.converged} | {r.distance_m:+.4f} | "
+            f"{r.body_lengths:+.3f} | {r.tol:.0e} | {r.error_m:.1e} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[Row], path: Path) -> None:
+    """Real-time factor per creature, and error against distance travelled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 4))
+    names = [r.creature for r in rows]
+    axes[0].bar(names, [r.realtime_factor for r in rows], color="#8fb3d9")
+    axes[0].axhline(1.0, color="black", linestyle="--", linewidth=1, label="real time")
+    axes[0].set(ylabel="simulated s per wall s", title="Real-time factor (median step)")
+    axes[0].legend()
+    axes[0].tick_params(axis="x", rotation=30)
+    for r in rows:
+        axes[1].loglog(abs(r.distance_m) or 1e-6, max(r.error_m, 1e-16), "o")
+        axes[1].annotate(r.creature, (abs(r.distance_m) or 1e-6, max(r.error_m, 1e-16)), fontsize=8)
+    axes[1].set(xlabel="|distance travelled| (m)", ylabel="final centre-of-mass error (m)", title="Error")
+    axes[1].grid(True, which="both", alpha=0.3)
+    figure.tight_layout()
+    temporary = path.with_suffix(".tmp.png")
+    figure.savefig(temporary, dpi=120)
+    temporary.replace(path)
+    plt.close(figure)
+
+
+def main(argv: list[str] | None = None) -> list[Row]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--creatures", nargs="+", default=list(CREATURES), choices=CREATURES)
+    parser.add_argument("--seconds", type=float, default=1.0, help="simulated time per creature, s")
+    parser.add_argument(
+        "--tol", type=float, default=None, help="velocity residual, m/s; default the script's"
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--out", type=Path, default=Path("out/bench_creatures"))
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = [bench(name, args.seconds, args.tol) for name in args.creatures]
+    table = markdown(rows, args.seconds)
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "bench_creatures.csv.tmp", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
+        writer.writeheader()
+        writer.writerows(asdict(r) for r in rows)
+    (args.out / "bench_creatures.csv.tmp").replace(args.out / "bench_creatures.csv")
+    (args.out / "bench_creatures.md.tmp").write_text(table)
+    (args.out / "bench_creatures.md.tmp").replace(args.out / "bench_creatures.md")
+    if not args.no_plot:
+        plot(rows, args.out / "bench_creatures.png")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
