@@ -109,6 +109,16 @@ class WalkSpec:
     ramp_periods: float = 1.0
 
 
+def bending_wave(segments: int) -> Callable[[float], tuple[float, ...]]:
+    """Phases of a wave along `segments` segments with a bottom and a top muscle each (worm, crawler):
+    segment s's bottom muscle at s·lag, its top muscle opposite; lag < 0 runs the wave forward."""
+
+    def phases(lag: float) -> tuple[float, ...]:
+        return tuple(lag * s + math.pi * layer for s in range(segments) for layer in (0, 1))
+
+    return phases
+
+
 def default_gait(spec: WalkSpec, creature: Creature) -> Gait:
     """The creature's suggested frequency and amplitude with the spec's phases and ramp."""
     frequency = creature.gait_frequency

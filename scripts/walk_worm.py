@@ -24,19 +24,14 @@ from __future__ import annotations
 import math
 import sys
 
-from _locomotion import WalkSpec, script_main
+from _locomotion import WalkSpec, bending_wave, script_main
 
 SEGMENTS = 5
 
 
-def phases(lag: float) -> tuple[float, ...]:
-    """Segment s: bottom muscle at phase s·lag, top muscle opposite; lag < 0 runs the wave forward."""
-    return tuple(lag * s + math.pi * layer for s in range(SEGMENTS) for layer in (0, 1))
-
-
 SPEC = WalkSpec(
     creature="worm",
-    phases=phases,
+    phases=bending_wave(SEGMENTS),
     phase_lag=-2 * math.pi / SEGMENTS,
     seconds=5.0,
     min_speed=0.12,
