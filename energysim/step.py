@@ -141,7 +141,6 @@ def step(
             start = _warm_start(objective, predicted, xp, scene.dt)
             terms[0].anchor = start  # the inertia term
             objective.anchor = start
-            objective.energy_evals = 0
             return solver.minimize(objective, start)
 
     if not wants_grad:
