@@ -63,7 +63,8 @@ def _invariant_excesses(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     The last one has no first-order part: |G|²/2 − I₂(G) − det G (in 2D, |G|²/2 − det G).
     """
     dim = F.shape[-1]
-    G = F - torch.eye(dim, dtype=F.dtype, device=F.device)
+    G = F.clone()
+    G.diagonal(dim1=-2, dim2=-1).sub_(1.0)  # F − I without building I
     trace = G.diagonal(dim1=-2, dim2=-1).sum(-1)
     squares = 0.5 * (G * G).sum(dim=(-1, -2))
     determinant = _determinant(G)

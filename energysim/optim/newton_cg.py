@@ -103,7 +103,8 @@ class NewtonCG(Solver):
             wanted = active & ~steepest
             direction, precondition, products = self._newton_direction(objective, x, gradient, eta, wanted)
             hvps += products
-            direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
+            if steepest.any():
+                direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
             # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient
             slope = _dot(gradient, direction)
             uphill = slope >= 0
