@@ -49,6 +49,34 @@ SIZES = {"tiny": (6, 1, 1), "1k": (15, 3, 3), "10k": (35, 7, 7), "50k": (60, 12,
 REFERENCE_TOL = 1e-10
 
 
+def timed_steps(
+    scene: es.Scene,
+    states: list[torch.Tensor],
+    steps: int,
+    solver: es.Solver,
+    budget_s: float,
+    probe: Callable[[torch.Tensor], float] | None = None,
+) -> tuple[list[float], list[es.SolverResult], list[float], list[float]]:
+    """Step `solver` from each reference state in turn: wall times (s), solver reports, max |x − x_ref|
+    against the next reference state (m), and `probe(x)` of each result; stops early past `budget_s`."""
+    times, stats, errors, probed = [], [], [], []
+    for k in range(steps):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", es.ConvergenceWarning)  # reported in the table instead
+            start = time.perf_counter()
+            result = es.step(scene, states[k], solver=solver)
+            times.append(time.perf_counter() - start)
+        stats.append(result.stats)
+        x, _ = scene.split_state(result.state)
+        x_ref, _ = scene.split_state(states[k + 1])
+        errors.append(float((x - x_ref).abs().max()))
+        if probe is not None:
+            probed.append(probe(x))
+        if sum(times) > budget_s:  # a slow optimizer on a big mesh: fewer samples
+            break
+    return times, stats, errors, probed
+
+
 def solvers(tol: float, first_order_iterations: int) -> dict[str, es.Solver]:
     """The optimizers compared, all stopping at the same velocity residual `tol` (m/s)."""
     return {
@@ -134,19 +162,7 @@ def run(
     for name, solver in solvers(tol, first_order_iterations).items():
         if name not in names:
             continue
-        times, stats, errors = [], [], []
-        for k in range(steps):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", es.ConvergenceWarning)  # reported in the table instead
-                start = time.perf_counter()
-                result = es.step(scene, states[k], solver=solver)
-                times.append(time.perf_counter() - start)
-            stats.append(result.stats)
-            x, _ = scene.split_state(result.state)
-            x_ref, _ = scene.split_state(states[k + 1])
-            errors.append(float((x - x_ref).abs().max()))
-            if sum(times) > budget_s:  # a slow optimizer on a big mesh: fewer samples
-                break
+        times, stats, errors, _ = timed_steps(scene, states, steps, solver, budget_s)
         count = len(times)
         converged = sum(s.converged for s in stats)
         rows.append(
@@ -469,20 +485,9 @@ def run_landing(
     for name, solver in solvers(tol, first_order_iterations).items():
         if name not in names:
             continue
-        times, stats, errors, heights = [], [], [], []
-        for k in range(steps):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", es.ConvergenceWarning)  # reported in the table instead
-                start = time.perf_counter()
-                result = es.step(scene, states[k], solver=solver)
-                times.append(time.perf_counter() - start)
-            stats.append(result.stats)
-            x, _ = scene.split_state(result.state)
-            x_ref, _ = scene.split_state(states[k + 1])
-            errors.append(float((x - x_ref).abs().max()))
-            heights.append(float(ground.signed_distance(x).min()))
-            if sum(times) > budget_s:  # a slow optimizer on a big mesh: fewer samples
-                break
+        times, stats, errors, heights = timed_steps(
+            scene, states, steps, solver, budget_s, probe=lambda x: float(ground.signed_distance(x).min())
+        )
         iterations[name] = [s.iterations for s in stats]
         count = len(times)
         rows.append(
