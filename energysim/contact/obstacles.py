@@ -178,7 +178,9 @@ class Obstacle(ElementEnergy):
 
     def normal_force(self, x: Tensor) -> Tensor:
         """Magnitude of the barrier's force on each colliding vertex, shape `[B, m]`, in N."""
-        distance = self.signed_distance(self._vertex_positions(x))
+        return self._normal_force(self.signed_distance(self._vertex_positions(x)))
+
+    def _normal_force(self, distance: Tensor) -> Tensor:
         first, _ = barrier_derivatives(distance, self.barrier_distance)
         return -self.barrier_stiffness * self.contact_area * first
 
@@ -196,14 +198,12 @@ class Obstacle(ElementEnergy):
         distance, gradient, _ = self.distance_derivatives(points)
         if not bool((distance < self.barrier_distance).any()):
             return []
-        first, _ = barrier_derivatives(distance, self.barrier_distance)
-        normal_force = -self.barrier_stiffness * self.contact_area * first
         return [
             LaggedFriction(
                 self.element_vertices,
                 points,
                 gradient,
-                normal_force,
+                self._normal_force(distance),
                 self.friction,
                 self.friction_smoothing * dt,
             )

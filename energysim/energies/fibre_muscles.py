@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
+from energysim.energies.muscles import contraction
 from energysim.fem.kinematics import shape_gradients, simplex_rest_frame
 from energysim.mesh import SimplexMesh, format_indices
 
@@ -129,13 +130,15 @@ class FibreMuscles(ElementEnergy):
         check_positive(stiffness, "stiffness", "Pa")
         self.register_buffer("fibres", unit)
         self.register_buffer("actuators", actuators)
+        # a Python int, read on every energy evaluation: no device sync there
+        self._num_actuators = int(actuators.max()) + 1
         self.register_buffer("stiffness", stiffness)
         self.max_contraction = float(max_contraction)
 
     @property
     def num_actuators(self) -> int:
         """How many entries of the action this term reads."""
-        return int(self.actuators.max()) + 1
+        return self._num_actuators
 
     def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
         count = self.actuators.shape[0]
@@ -163,12 +166,9 @@ class FibreMuscles(ElementEnergy):
         """λ* = 1 − c·clamp(a, −1, 1) per actuated element, shape `[B, m_active]` (a 0-d 1 without action)."""
         if action is None:
             return self.rest_volume.new_ones(())
-        if action.shape[-1] < self.num_actuators:
-            raise ValueError(
-                f"action has {action.shape[-1]} entries; these muscles need {self.num_actuators}"
-            )
-        activation = action[..., self.element_actuator].clamp(-1.0, 1.0)
-        return 1.0 - self.max_contraction * activation
+        return contraction(
+            action, self.element_actuator, self.max_contraction, self.num_actuators, "muscles"
+        )
 
     def fibre_stretch(self, x: Tensor) -> Tensor:
         """‖F m‖ of every actuated element at positions `x` `[B, n, d]`, shape `[B, m_active]`."""

@@ -9,6 +9,19 @@ from energysim.energies.springs import Springs
 from energysim.mesh import SimplexMesh
 
 
+def contraction(
+    action: Tensor, actuator_of: Tensor, max_contraction: float, needed: int, what: str
+) -> Tensor:
+    """1 − c·clamp(a_j, −1, 1) for each actuated thing, j = `actuator_of` of it; shape `[B, len]`.
+
+    Raises:
+        ValueError: `action` has fewer than `needed` entries.
+    """
+    if action.shape[-1] < needed:
+        raise ValueError(f"action has {action.shape[-1]} entries; these {what} need {needed}")
+    return 1.0 - max_contraction * action[..., actuator_of].clamp(-1.0, 1.0)
+
+
 class ActuatedSprings(Springs):
     """Springs whose rest length is ℓ₀ (1 − c·a), a = the action of the spring's actuator.
 
@@ -39,11 +52,13 @@ class ActuatedSprings(Springs):
             raise ValueError(f"max_contraction must lie in (0, 1), got {max_contraction}")
         self.register_buffer("actuators", torch.as_tensor(actuators, dtype=torch.int64))
         self.max_contraction = max_contraction
+        # a Python int, read on every energy evaluation: no device sync there
+        self._num_actuators = int(self.actuators.max()) + 1 if self.actuators.numel() else 0
 
     @property
     def num_actuators(self) -> int:
         """How many entries of the action this term reads."""
-        return int(self.actuators.max()) + 1
+        return self._num_actuators
 
     def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
         super().bind(mesh, vertex_mass)
@@ -55,9 +70,5 @@ class ActuatedSprings(Springs):
         """ℓ₀ (1 − c·clamp(a, −1, 1)) per spring, shape `[B, s]` (or `[s]` without an action), in m."""
         if action is None:
             return self.rest_length
-        if action.shape[-1] < self.num_actuators:
-            raise ValueError(
-                f"action has {action.shape[-1]} entries; these springs need {self.num_actuators}"
-            )
-        activation = action[:, self.actuators].clamp(-1.0, 1.0)
-        return self.rest_length * (1.0 - self.max_contraction * activation)
+        factor = contraction(action, self.actuators, self.max_contraction, self.num_actuators, "springs")
+        return self.rest_length * factor
