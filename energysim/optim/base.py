@@ -126,6 +126,70 @@ class Solver:
         return self._report(result)
 
 
+def _rounding(x: Tensor, energy: Tensor) -> Tensor:
+    # a decrease within a few ulps of |E| counts as no increase
+    return 64 * torch.finfo(x.dtype).eps * energy.abs()
+
+
+def _sufficient_decrease(
+    energy: Tensor, trial: Tensor, step: Tensor, slope: Tensor, rounding: Tensor, constant: float
+) -> Tensor:
+    return torch.isfinite(trial) & (trial <= energy + constant * step * slope + rounding)
+
+
+@dataclass(frozen=True)
+class LineStep:
+    """Where a line search along one direction ended, per batch entry.
+
+    Attributes:
+        step: the accepted fractions of the direction `[B]` (0 where none was accepted).
+        x: the new positions `[B, n, d]`, in m.
+        energy: E there `[B]`, in J.
+        gradient: ∇E there `[B, n, d]`, in N.
+        unjudged: entries taken whole because the energy could not judge the step `[B]`.
+    """
+
+    step: Tensor
+    x: Tensor
+    energy: Tensor
+    gradient: Tensor
+    unjudged: Tensor
+
+
+def line_step(
+    objective: Objective,
+    x: Tensor,
+    energy: Tensor,
+    gradient: Tensor,
+    direction: Tensor,
+    *,
+    sufficient_decrease: float = 1e-4,
+) -> LineStep:
+    """One line-search step from `x` along `direction`, with the energy and gradient where it ends.
+
+    Starts from the largest fraction every term allows (`objective.max_step`). That first trial is
+    evaluated with its gradient, which the solver needs next anyway: when every entry accepts it (the
+    common case near a minimum), the search costs no energy evaluation of its own. Otherwise it
+    backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
+    """
+    initial = objective.max_step(x, direction)
+    slope = (gradient * direction).sum(dim=(-1, -2))
+    rounding = _rounding(x, energy)
+    unjudged = -slope * initial <= rounding
+    trial_x = x + initial[:, None, None] * direction
+    trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
+    decrease = _sufficient_decrease(energy, trial_energy, initial, slope, rounding, sufficient_decrease)
+    accepted = unjudged | decrease
+    if bool(accepted.all()):
+        return LineStep(initial, trial_x, trial_energy, trial_gradient, unjudged)
+    step, _, unjudged = backtracking_line_search(
+        objective, x, energy, gradient, direction, initial, sufficient_decrease=sufficient_decrease
+    )
+    x_new = x + step[:, None, None] * direction
+    new_energy, new_gradient = objective.energy_and_gradient(x_new)
+    return LineStep(step, x_new, new_energy, new_gradient, unjudged)
+
+
 def backtracking_line_search(
     objective: Objective,
     x: Tensor,
@@ -136,7 +200,7 @@ def backtracking_line_search(
     *,
     sufficient_decrease: float = 1e-4,
     max_halvings: int = 40,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
     Near convergence the energy change falls below the energy's rounding error, so a decrease
@@ -153,17 +217,13 @@ def backtracking_line_search(
     """
     slope = (gradient * direction).sum(dim=(-1, -2))
     step = initial_step.clone()
-    rounding = 64 * torch.finfo(x.dtype).eps * energy.abs()
+    rounding = _rounding(x, energy)
     unjudged = -slope * initial_step <= rounding
     accepted = unjudged.clone()
     new_energy = energy.clone()
     for _ in range(max_halvings):
         trial = objective.energy(x + step[:, None, None] * direction)
-        ok = (
-            torch.isfinite(trial)
-            & (trial <= energy + sufficient_decrease * step * slope + rounding)
-            & ~accepted
-        )
+        ok = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease) & ~accepted
         new_energy = torch.where(ok, trial, new_energy)
         accepted = accepted | ok
         if accepted.all():

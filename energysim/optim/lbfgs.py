@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
-from energysim.optim.base import Solver, SolverResult, backtracking_line_search
+from energysim.optim.base import Solver, SolverResult, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -73,14 +73,12 @@ class LBFGS(Solver):
             direction = -self._two_loop(gradient, history, inverse_diagonal, scale) * active[:, None, None]
             downhill = _dot(gradient, direction) < 0
             direction = torch.where(downhill[:, None, None], direction, -inverse_diagonal * gradient)
-            step, _, unjudged = backtracking_line_search(
-                objective, x, energy, gradient, direction, objective.max_step(x, direction)
-            )
+            search = line_step(objective, x, energy, gradient, direction)
+            step, x_new, unjudged = search.step, search.x, search.unjudged
             failed = active & (step == 0)
             stalled = stalled | (failed & restarted)
             restarted = failed
-            x_new = x + step[:, None, None] * direction
-            new_energy, new_gradient = objective.energy_and_gradient(x_new)
+            new_energy, new_gradient = search.energy, search.gradient
             new_residual = objective.residual(new_gradient)
             # as in Newton–CG: a step the energy cannot judge stands only if the residual fell
             worse = active & unjudged & (new_residual >= residual)

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
-from energysim.optim.base import Solver, SolverResult, backtracking_line_search
+from energysim.optim.base import Solver, SolverResult, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -111,14 +111,12 @@ class NewtonCG(Solver):
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
-            step, _, unjudged = backtracking_line_search(
-                objective, x, energy, gradient, direction, objective.max_step(x, direction)
-            )
+            search = line_step(objective, x, energy, gradient, direction)
+            step, x_new, unjudged = search.step, search.x, search.unjudged
             failed = active & (step == 0)
             stalled = stalled | (failed & steepest)
             steepest = failed
-            x_new = x + step[:, None, None] * direction
-            new_energy, new_gradient = objective.energy_and_gradient(x_new)
+            new_energy, new_gradient = search.energy, search.gradient
             new_residual = objective.residual(new_gradient)
             # a step too small for the energy to judge stands only if the residual fell; if not,
             # this is as far as the precision goes: keep the better point and stop that entry
@@ -169,10 +167,11 @@ class NewtonCG(Solver):
         solved = wanted & (info == 0)
         if not solved.any():
             return torch.zeros_like(rhs), none
-        safe = torch.where(
-            (info == 0)[:, None, None], factor, torch.eye(dense.shape[-1], dtype=x.dtype, device=x.device)
-        )
-        direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), safe).reshape(rhs.shape)
+        if not bool((info == 0).all()):
+            # a failed factor holds garbage: swap in identities so the batched solve stays finite
+            eye = torch.eye(dense.shape[-1], dtype=x.dtype, device=x.device)
+            factor = torch.where((info == 0)[:, None, None], factor, eye)
+        direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
         return direction * solved[:, None, None], solved
 
     def _preconditioner(
