@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 from _locomotion import body_length, build_scene, default_gait, run
 
+from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES, load_creature
 
 REFERENCE_FACTOR = 10.0  # the reference run's tolerance is this many times tighter
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument("--out", type=Path, default=Path("out/bench_creatures"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    configure_cpu(args.threads)
     rows = [bench(name, args.seconds, args.tol) for name in args.creatures]
     table = markdown(rows, args.seconds)
     print(table)

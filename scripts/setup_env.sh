@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Sets up .venv with energysim and its test tools; safe to run again (it skips what is done).
+# Sets up .venv with energysim, its RL extra and its test tools; safe to run again (it skips what is done).
 #
 # On a machine without a CUDA GPU it installs the CPU build of torch: the "+cpu" version exists
 # only as CPU wheels (a local wheel folder, or PyTorch's CPU index), so pip can never fall back
@@ -18,7 +18,7 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
       || "${pip[@]}" "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
   fi
 fi
-"${pip[@]}" -e ".[dev]"
+"${pip[@]}" -e ".[dev,rl]"
 
 # The browser test (tests/test_viewer_browser.py) drives Debian's chromium through playwright, which is
 # never allowed to download a browser of its own. Install chromium when it is missing and apt-get is
