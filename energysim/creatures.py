@@ -19,13 +19,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from energysim.contact import Ground
 from energysim.energies.fibre_muscles import FibreMuscles
+from energysim.energies.neo_hookean import NeoHookean
 from energysim.mesh import SimplexMesh, TetMesh, TriMesh
 from energysim.mesh.io import read_meshio, simplices_from_meshio
+from energysim.optim import Solver
+from energysim.scene import Scene
 
 CREATURES = ("worm", "quadruped", "starfish", "jumper", "crawler2d", "walker2d")
 MESHES_ENV = "ENERGYSIM_MESHES"
 MAKE_SCRIPT = "scripts/make_creatures.py"
+STANDARD_GRAVITY = 9.81  # m/s², the creatures' scenes pull along −y
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,6 +98,70 @@ class Creature:
         t = torch.as_tensor(time, dtype=torch.float64)
         phases = torch.tensor(self.gait_phases, dtype=torch.float64)
         return self.gait_amplitude * torch.sin(2 * math.pi * self.gait_frequency * t[..., None] + phases)
+
+    def scene(self, dt: float = 1 / 60, friction: float = 0.8, solver: Solver | None = None) -> Scene:
+        """The creature on level ground: its suggested material and muscles, gravity along −y and an
+        IPC ground at y = 0 with lagged Coulomb friction μ.
+
+        Terms, in order: gravity (9.81 m/s² along −y), `NeoHookean` (E, ν), `muscles()`, `Ground`.
+
+        Args:
+            dt: time step h in s, > 0.
+            friction: Coulomb coefficient μ of the ground, ≥ 0.
+            solver: the scene's optimizer; default the `Scene` default.
+        """
+        up = (0.0, 1.0, 0.0) if self.dim == 3 else (0.0, 1.0)
+        scene = Scene(
+            self.mesh,
+            density=self.density,
+            dt=dt,
+            gravity=tuple(-STANDARD_GRAVITY * u for u in up),
+            solver=solver,
+        )
+        scene.add(NeoHookean(self.youngs_modulus, self.poissons_ratio))
+        scene.add(self.muscles())
+        scene.add(Ground(0.0, normal=up, friction=friction))
+        return scene
+
+
+def scene_ground(scene: Scene) -> Ground:
+    """The scene's one `Ground` term; ValueError when it has none or several."""
+    grounds = [term for term in scene.terms if isinstance(term, Ground)]
+    if len(grounds) != 1:
+        raise ValueError(f"expected one Ground term in the scene, found {len(grounds)}")
+    return grounds[0]
+
+
+def resting_state(
+    scene: Scene, positions: Tensor | None = None, velocities: Tensor | None = None
+) -> Tensor:
+    """A state that starts in contact with the ground, outside it: `positions` moved along the ground's
+    normal until the lowest vertex is half the barrier distance d̂ above it.
+
+    With the rest positions (lowest vertex on the ground) that is the rest shape lifted by d̂/2: inside
+    the barrier's reach, so the creature rests on the ground from the first step instead of falling
+    onto it.
+
+    Args:
+        scene: a scene with one `Ground` term (e.g. from `Creature.scene`).
+        positions: shape `[n, d]` or `[B, n, d]`, in m; default the rest positions.
+        velocities: same shape, in m/s; default zero.
+
+    Returns:
+        the state, shape `[2·n·d]` (or `[B, 2·n·d]` for batched positions).
+    """
+    ground = scene_ground(scene)
+    x = scene.rest_positions if positions is None else torch.as_tensor(positions).to(scene.rest_positions)
+    n, d = scene.num_vertices, scene.dim
+    if tuple(x.shape[-2:]) != (n, d) or x.ndim not in (2, 3):
+        raise ValueError(f"positions must have shape [{n}, {d}] or [B, {n}, {d}], got {list(x.shape)}")
+    v = torch.zeros_like(x) if velocities is None else torch.as_tensor(velocities).to(x)
+    if v.shape != x.shape:
+        raise ValueError(f"velocities must have the shape of positions {list(x.shape)}, got {list(v.shape)}")
+    lowest = ground.signed_distance(x).amin(dim=-1)
+    lift = 0.5 * ground.barrier_distance - lowest
+    x = x + lift[..., None, None] * ground.normal.to(x)
+    return torch.cat([x.flatten(-2), v.flatten(-2)], dim=-1)
 
 
 def default_meshes_dir() -> Path:
@@ -176,4 +245,4 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
     )
 
 
-__all__ = ["CREATURES", "Creature", "default_meshes_dir", "load_creature"]
+__all__ = ["CREATURES", "Creature", "default_meshes_dir", "load_creature", "resting_state", "scene_ground"]

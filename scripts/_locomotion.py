@@ -35,7 +35,8 @@ from _common import SOLVERS, Rollout, make_solver, simulate
 from torch import Tensor
 
 import energysim as es
-from energysim.creatures import Creature, load_creature
+from energysim.cpu import configure as configure_cpu
+from energysim.creatures import Creature, load_creature, resting_state, scene_ground
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.export import element_activation, export_rollout, render_gif, render_mp4, render_png
 
@@ -172,27 +173,17 @@ def build_scene(
         solver: "newton-cg", "lbfgs" or "adam".
         tol: the solver's velocity-residual tolerance in m/s.
     """
-    up = (0.0, 1.0, 0.0) if creature.dim == 3 else (0.0, 1.0)
-    gravity = tuple(-9.81 * u for u in up)
-    scene = es.Scene(creature.mesh, density=creature.density, dt=dt, gravity=gravity)
-    scene.add(es.NeoHookean(creature.youngs_modulus, creature.poissons_ratio))
-    scene.add(creature.muscles())
-    scene.add(es.Ground(0.0, normal=up, friction=friction))
-    scene.solver = make_solver(solver, tol)
-    return scene
+    return creature.scene(dt, friction, make_solver(solver, tol))
 
 
 def ground(scene: es.Scene) -> es.Ground:
     """The scene's ground term."""
-    (term,) = [term for term in scene.terms if isinstance(term, es.Ground)]
-    return term
+    return scene_ground(scene)
 
 
 def initial_state(scene: es.Scene) -> Tensor:
     """At rest in the rest shape, lifted by half the ground's barrier distance d̂ (in contact, outside)."""
-    x = scene.rest_positions.clone()
-    x[:, 1] += 0.5 * ground(scene).barrier_distance
-    return scene.initial_state(positions=x)
+    return resting_state(scene)
 
 
 def centre_of_mass(scene: es.Scene, x: Tensor) -> Tensor:
@@ -398,7 +389,7 @@ def script_main(argv: list[str] | None, doc: str, spec: WalkSpec) -> int:
     """Build, walk, write, render, summarise and check; returns 0 when the check passes, else 1."""
     shipped = load_creature(spec.creature)
     args = make_parser(doc, spec, shipped).parse_args(argv)
-    torch.set_num_threads(args.threads)
+    configure_cpu(args.threads)
     creature = refined_creature(spec.creature, args.refine)
     ramp = args.ramp / args.frequency if args.frequency > 0 else 0.0  # Gait itself rejects f <= 0
     gait = Gait(args.frequency, args.amplitude, tuple(spec.phases(args.phase_lag)), ramp)

@@ -1,0 +1,286 @@
+"""The batched core of the creature environments: reset, step and reward on `[B, 2·n·d]` states.
+
+No Gymnasium here: the environments (`creature_env`, `vector_env`) are thin wrappers that convert to
+numpy, count episode steps and reset finished entries. Everything is vectorised over the batch, so
+one env step of B creatures is `frame_skip` batched `es.step` calls.
+
+A step whose solve fails is a numerical failure of that batch entry: the solver here is strict, so a
+solve that does not reach `solver_tol` within `solver_max_iter` Newton iterations raises
+`ConvergenceError`, as does a non-finite iterate. The batch is then split in halves, recursively,
+until the failing entries stand alone: they keep their last good state and are flagged, the others
+are stepped as if nothing had happened (entries of a batched solve never mix, see `NewtonCG`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from energysim.creatures import CREATURES, load_creature, resting_state, scene_ground
+from energysim.envs.observation import ObservationLayout, centre_of_mass, farthest_point_markers, observe
+from energysim.optim import ConvergenceError, NewtonCG
+from energysim.step import step
+
+logger = logging.getLogger(__name__)
+
+
+def _check_integer(value: object, name: str, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def _check_number(
+    value: object, name: str, unit: str, low: float | None = None, strict: bool = False
+) -> None:
+    ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if strict else value >= low
+    if not ok:
+        bound = "" if low is None else f" and {'>' if strict else '>='} {low}"
+        raise ValueError(f"{name} must be a finite number{bound}{unit}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class CreatureEnvConfig:
+    """What defines a creature environment (Gymnasium MuJoCo names where they exist).
+
+    Attributes:
+        creature: a name in `energysim.creatures.CREATURES`.
+        frame_skip: physics steps per env step, each with the env step's action.
+        dt: physics time step h in s; an env step lasts `frame_skip`·h.
+        forward_reward_weight: reward per m/s of forward (+x) centre-of-mass velocity.
+        ctrl_cost_weight: cost per unit of ‖a‖² (a the clipped action).
+        reset_noise_scale: half-width of the uniform noise added at reset to every rest position
+            component (m) and velocity component (m/s).
+        friction: Coulomb coefficient μ of the ground.
+        solver_tol: Newton–CG velocity-residual tolerance in m/s.
+        solver_max_iter: most Newton iterations per physics step; a step that needs more fails.
+        max_episode_steps: env steps before truncation, or None for none.
+        num_markers: marker vertices in the observation.
+    """
+
+    creature: str = "worm"
+    frame_skip: int = 1
+    dt: float = 1 / 60
+    forward_reward_weight: float = 1.0
+    ctrl_cost_weight: float = 1e-3
+    reset_noise_scale: float = 1e-3
+    friction: float = 0.8
+    solver_tol: float = 1e-4
+    solver_max_iter: int = 100
+    max_episode_steps: int | None = None
+    num_markers: int = 12
+
+    def __post_init__(self) -> None:
+        if self.creature not in CREATURES:
+            raise ValueError(f"unknown creature {self.creature!r}; choose one of {CREATURES}")
+        _check_integer(self.frame_skip, "frame_skip", 1)
+        _check_number(self.dt, "dt", " s", 0.0, strict=True)
+        _check_number(self.forward_reward_weight, "forward_reward_weight", "")
+        _check_number(self.ctrl_cost_weight, "ctrl_cost_weight", "", 0.0)
+        _check_number(self.reset_noise_scale, "reset_noise_scale", " m (m/s)", 0.0)
+        _check_number(self.friction, "friction", "", 0.0)
+        _check_number(self.solver_tol, "solver_tol", " m/s", 0.0, strict=True)
+        _check_integer(self.solver_max_iter, "solver_max_iter", 1)
+        if self.max_episode_steps is not None:
+            _check_integer(self.max_episode_steps, "max_episode_steps", 1)
+        _check_integer(self.num_markers, "num_markers", 1)
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One env step of B entries; tensors on the simulation's device.
+
+    Attributes:
+        state: the new states `[B, 2·n·d]`; a failed entry keeps its last good state.
+        activation: the actions applied, clipped to [−1, 1], `[B, a]`.
+        observation: `[B, layout.size]`, at `state`.
+        reward: `reward_forward + reward_ctrl`, `[B]`.
+        reward_forward: `forward_reward_weight` × `x_velocity`, `[B]`.
+        reward_ctrl: −`ctrl_cost_weight` × ‖activation‖², `[B]`.
+        x_position: centre-of-mass x at `state`, `[B]`, in m.
+        x_velocity: centre-of-mass x displacement over the step / (frame_skip·h), `[B]`, in m/s.
+        numerical_failure: which entries failed, `[B]`, bool.
+        solver_iterations: Newton iterations of the solves that made `state` (summed over the
+            frame; the count of the batched solve each entry took part in), `[B]`, int64.
+    """
+
+    state: Tensor
+    activation: Tensor
+    observation: Tensor
+    reward: Tensor
+    reward_forward: Tensor
+    reward_ctrl: Tensor
+    x_position: Tensor
+    x_velocity: Tensor
+    numerical_failure: Tensor
+    solver_iterations: Tensor
+
+
+class CreatureSimulation:
+    """A shipped creature on level ground, stepped in batches, with its observation and reward.
+
+    Args:
+        config: the environment's settings.
+        device: where states live (default CPU).
+        dtype: floating-point type of the simulation (float64 recommended; see the README).
+    """
+
+    def __init__(
+        self,
+        config: CreatureEnvConfig,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        if not isinstance(config, CreatureEnvConfig):
+            raise TypeError(f"config must be a CreatureEnvConfig, got {type(config).__name__}")
+        if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
+        self.config = config
+        self.creature = load_creature(config.creature)
+        solver = NewtonCG(tol=config.solver_tol, max_iter=config.solver_max_iter, strict=True)
+        self.scene = self.creature.scene(config.dt, config.friction, solver)
+        self.scene.to(device=torch.device(device) if device is not None else None, dtype=dtype)
+        self.ground = scene_ground(self.scene)
+        mesh = self.creature.mesh
+        surface = mesh.surface_vertices()
+        if config.num_markers > surface.numel():
+            raise ValueError(
+                f"num_markers must be at most {surface.numel()} (the {config.creature}'s surface vertices), "
+                f"got {config.num_markers}"
+            )
+        self.markers = farthest_point_markers(mesh.vertices, surface, config.num_markers).to(self.device)
+        self.layout = ObservationLayout.build(mesh.dim, config.num_markers, self.num_actuators)
+        self.rest_state = resting_state(self.scene)
+
+    @property
+    def device(self) -> torch.device:
+        return self.scene.vertex_mass.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.scene.vertex_mass.dtype
+
+    @property
+    def num_actuators(self) -> int:
+        return self.creature.num_actuators
+
+    @property
+    def frame_seconds(self) -> float:
+        """Duration of one env step, frame_skip·h, in s."""
+        return self.config.frame_skip * self.config.dt
+
+    def reset(self, generators: Sequence[np.random.Generator]) -> Tensor:
+        """Start states `[B, 2·n·d]`, one per generator: rest positions and zero velocities, each with
+        uniform noise of half-width `reset_noise_scale`, then moved along the ground's normal so the
+        lowest vertex is d̂/2 above the ground (`resting_state`). Entry i draws its n·d position
+        then n·d velocity components from `generators[i]`, so it depends on that generator alone.
+        """
+        scale = self.config.reset_noise_scale
+        shape = (self.scene.num_vertices, self.scene.dim)
+        noise = np.stack([np.stack([g.uniform(-scale, scale, shape) for _ in range(2)]) for g in generators])
+        noise = torch.from_numpy(noise).to(device=self.device, dtype=self.dtype)
+        return resting_state(self.scene, self.scene.rest_positions + noise[:, 0], noise[:, 1])
+
+    def observe(self, state: Tensor, activation: Tensor) -> Tensor:
+        """Observations `[B, layout.size]` (see `ObservationLayout`) at `state` `[B, 2·n·d]`."""
+        x, v = self.scene.split_state(state)
+        return observe(
+            x,
+            v,
+            activation,
+            self.scene.rest_positions,
+            self.scene.vertex_mass,
+            self.markers,
+            self.ground.normal,
+            float(self.ground.offset),
+        )
+
+    def x_position(self, state: Tensor) -> Tensor:
+        """Centre-of-mass x of each state, `[B]`, in m."""
+        return centre_of_mass(self.scene.split_state(state)[0], self.scene.vertex_mass)[:, 0]
+
+    def check_action(self, action: Tensor) -> Tensor:
+        """`action` `[B, a]` as a finite tensor on the simulation's device, clipped to [−1, 1]."""
+        action = torch.as_tensor(action, device=self.device).to(self.dtype)
+        if action.ndim != 2 or action.shape[1] != self.num_actuators:
+            raise ValueError(
+                f"action must have shape [B, {self.num_actuators}] (one activation per actuator of the "
+                f"{self.config.creature}), got {list(action.shape)}"
+            )
+        if not torch.isfinite(action).all():
+            bad = torch.nonzero(~torch.isfinite(action).all(dim=1)).flatten().tolist()
+            raise ValueError(f"action has non-finite entries in batch entries {bad}")
+        return action.clamp(-1.0, 1.0)
+
+    def step(self, state: Tensor, action: Tensor) -> Transition:
+        """`frame_skip` physics steps of every entry with its action `[B, a]` (clipped to [−1, 1]).
+
+        An entry whose solve fails stops at its last good state for the rest of the frame.
+        """
+        activation = self.check_action(action)
+        if state.ndim != 2 or state.shape[0] != activation.shape[0]:
+            raise ValueError(f"state must have shape [{activation.shape[0]}, 2·n·d], got {list(state.shape)}")
+        batch = state.shape[0]
+        x_before = self.x_position(state)
+        alive = torch.ones(batch, dtype=torch.bool, device=self.device)
+        iterations = torch.zeros(batch, dtype=torch.int64, device=self.device)
+        with torch.no_grad():
+            for _ in range(self.config.frame_skip):
+                if bool(alive.all()):
+                    state, ok, taken = self._solve(state, activation)
+                    alive, iterations = ok, iterations + taken
+                    continue
+                index = torch.nonzero(alive).flatten()
+                if index.numel() == 0:
+                    break
+                new, ok, taken = self._solve(state[index], activation[index])
+                state = state.index_copy(0, index, new)
+                alive = alive.index_copy(0, index, ok)
+                iterations = iterations.index_add(0, index, taken)
+            x_after = self.x_position(state)
+            x_velocity = (x_after - x_before) / self.frame_seconds
+            reward_forward = self.config.forward_reward_weight * x_velocity
+            reward_ctrl = -self.config.ctrl_cost_weight * activation.square().sum(dim=1)
+            observation = self.observe(state, activation)
+        return Transition(
+            state=state,
+            activation=activation,
+            observation=observation,
+            reward=reward_forward + reward_ctrl,
+            reward_forward=reward_forward,
+            reward_ctrl=reward_ctrl,
+            x_position=x_after,
+            x_velocity=x_velocity,
+            numerical_failure=~alive,
+            solver_iterations=iterations,
+        )
+
+    def _solve(self, state: Tensor, activation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """One physics step of every entry: new states (the old one where it failed), which entries
+        succeeded `[B]`, and their Newton iterations `[B]` (0 where failed)."""
+        batch = state.shape[0]
+        try:
+            result = step(self.scene, state, activation)
+        except ConvergenceError as error:
+            if batch == 1:
+                logger.info("numerical failure of a %s step: %s", self.config.creature, error)
+                failed = torch.zeros(1, dtype=torch.bool, device=self.device)
+                return state, failed, torch.zeros(1, dtype=torch.int64, device=self.device)
+            # split to find the failing entries; the others' results do not depend on the split
+            half = batch // 2
+            first = self._solve(state[:half], activation[:half])
+            second = self._solve(state[half:], activation[half:])
+            return tuple(torch.cat(pair) for pair in zip(first, second, strict=True))  # type: ignore[return-value]
+        ok = torch.isfinite(result.state).all(dim=1)
+        new_state = torch.where(ok[:, None], result.state, state)
+        return new_state, ok, ok.to(torch.int64) * result.stats.iterations
+
+
+__all__ = ["CreatureEnvConfig", "CreatureSimulation", "Transition"]

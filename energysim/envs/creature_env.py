@@ -1,0 +1,177 @@
+"""`CreatureEnv`: one shipped soft creature on level ground as a Gymnasium environment.
+
+The agent sets the muscle activations; the reward is the forward (+x) speed of the centre of mass
+minus a control cost, as in Gymnasium's MuJoCo locomotion tasks. See docs/envs.md.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition
+from energysim.envs.rendering import SideViewRenderer
+
+
+def observation_space(simulation: CreatureSimulation) -> spaces.Box:
+    """The float32 Box of one observation (unbounded: positions and velocities have no natural limit)."""
+    return spaces.Box(-np.inf, np.inf, (simulation.layout.size,), dtype=np.float32)
+
+
+def action_space(simulation: CreatureSimulation) -> spaces.Box:
+    """One activation per actuator in [−1, 1], float32."""
+    return spaces.Box(-1.0, 1.0, (simulation.num_actuators,), dtype=np.float32)
+
+
+def step_info(transition: Transition, index: int) -> dict[str, Any]:
+    """The info dict of batch entry `index`: every reward term and what the solver did."""
+    return {
+        "x_position": float(transition.x_position[index]),
+        "x_velocity": float(transition.x_velocity[index]),
+        "reward_forward": float(transition.reward_forward[index]),
+        "reward_ctrl": float(transition.reward_ctrl[index]),
+        "solver_iterations": int(transition.solver_iterations[index]),
+        "numerical_failure": bool(transition.numerical_failure[index]),
+    }
+
+
+class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
+    """A shipped creature (`energysim.creatures`) learning to move forward on frictional ground.
+
+    Observation (float32, see `ObservationLayout`): centre-of-mass height and velocity, positions and
+    velocities of `num_markers` surface markers relative to the centre of mass, the 6D (3D) or
+    (cos θ, sin θ) (2D) orientation of the body's best-fit rigid frame, and the last activations.
+    Action: one activation per actuator in [−1, 1] (clipped). Reward: `forward_reward_weight` ×
+    centre-of-mass x velocity over the step − `ctrl_cost_weight` × ‖a‖². A failed solve ends the
+    episode (`terminated`, `info["numerical_failure"]`) with the last good observation.
+
+    Args:
+        creature: a name in `energysim.creatures.CREATURES`.
+        frame_skip: physics steps per env step.
+        dt: physics time step in s.
+        forward_reward_weight, ctrl_cost_weight: reward weights (per m/s, per unit ‖a‖²).
+        reset_noise_scale: uniform reset noise half-width, m for positions and m/s for velocities.
+        friction: Coulomb coefficient of the ground.
+        solver_tol: Newton–CG velocity-residual tolerance in m/s.
+        solver_max_iter: most Newton iterations per physics step; more is a numerical failure.
+        max_episode_steps: truncate after this many env steps; None: never (`gymnasium.make`
+            truncates through the registration's `TimeLimit` instead).
+        num_markers: marker vertices in the observation.
+        render_mode: None or "rgb_array" (a side view, see `SideViewRenderer`).
+        device, dtype: where and in which precision the simulation runs.
+
+    Attributes:
+        simulation: the `CreatureSimulation` stepped with a batch of one (scene, markers, layout).
+        state: the current state, shape `[1, 2·n·d]`, in m and m/s; None before the first reset.
+        elapsed_steps: env steps since the last reset.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 60}
+
+    def __init__(
+        self,
+        creature: str = "worm",
+        *,
+        frame_skip: int = 1,
+        dt: float = 1 / 60,
+        forward_reward_weight: float = 1.0,
+        ctrl_cost_weight: float = 1e-3,
+        reset_noise_scale: float = 1e-3,
+        friction: float = 0.8,
+        solver_tol: float = 1e-4,
+        solver_max_iter: int = 100,
+        max_episode_steps: int | None = None,
+        num_markers: int = 12,
+        render_mode: str | None = None,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        config = CreatureEnvConfig(
+            creature=creature,
+            frame_skip=frame_skip,
+            dt=dt,
+            forward_reward_weight=forward_reward_weight,
+            ctrl_cost_weight=ctrl_cost_weight,
+            reset_noise_scale=reset_noise_scale,
+            friction=friction,
+            solver_tol=solver_tol,
+            solver_max_iter=solver_max_iter,
+            max_episode_steps=max_episode_steps,
+            num_markers=num_markers,
+        )
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}"
+            )
+        self.simulation = CreatureSimulation(config, device=device, dtype=dtype)
+        self.config = config
+        self.render_mode = render_mode
+        self.metadata = {
+            **type(self).metadata,
+            "render_fps": max(1, round(1 / self.simulation.frame_seconds)),
+        }
+        self.observation_space = observation_space(self.simulation)
+        self.action_space = action_space(self.simulation)
+        self.state: torch.Tensor | None = None  # [1, 2·n·d]
+        self.elapsed_steps = 0
+        self._observation = np.zeros(self.observation_space.shape, dtype=np.float32)
+        self._renderer: SideViewRenderer | None = None
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Rest shape and zero velocity with uniform noise (`reset_noise_scale`), just touching the ground."""
+        super().reset(seed=seed, options=options)
+        self.state = self.simulation.reset([self.np_random])
+        simulation = self.simulation
+        activation = torch.zeros(
+            1, simulation.num_actuators, device=simulation.device, dtype=simulation.dtype
+        )
+        self.elapsed_steps = 0
+        self._observation = self._to_numpy(self.simulation.observe(self.state, activation))
+        return self._observation.copy(), {"x_position": float(self.simulation.x_position(self.state)[0])}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Advance `frame_skip` physics steps with `action` (shape `[a]`, clipped to [−1, 1])."""
+        if self.state is None:
+            raise RuntimeError("call reset() before step()")
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != self.action_space.shape:
+            raise ValueError(
+                f"action must have shape {self.action_space.shape} (one activation per actuator of the "
+                f"{self.config.creature}), got {action.shape}"
+            )
+        transition = self.simulation.step(self.state, torch.from_numpy(action)[None])
+        self.state = transition.state
+        self.elapsed_steps += 1
+        info = step_info(transition, 0)
+        # a failed entry's observation is that of its last good state, finite by construction
+        self._observation = self._to_numpy(transition.observation)
+        terminated = info["numerical_failure"]
+        limit = self.config.max_episode_steps
+        truncated = limit is not None and self.elapsed_steps >= limit
+        return self._observation.copy(), float(transition.reward[0]), terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """An RGB side view `[H, W, 3]` uint8 of the current state (render_mode "rgb_array"), else None."""
+        if self.render_mode != "rgb_array" or self.state is None:
+            return None
+        if self._renderer is None:
+            self._renderer = SideViewRenderer(self.simulation.creature.mesh)
+        positions = self.simulation.scene.split_state(self.state)[0][0]
+        return self._renderer.render(positions.detach().cpu().numpy())
+
+    def close(self) -> None:
+        self._renderer = None
+        super().close()
+
+    @staticmethod
+    def _to_numpy(observation: torch.Tensor) -> np.ndarray:
+        return observation[0].detach().cpu().numpy().astype(np.float32)
+
+
+__all__ = ["CreatureEnv", "action_space", "observation_space", "step_info"]

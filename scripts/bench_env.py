@@ -1,0 +1,201 @@
+"""Benchmark the batched creature environments: env steps per second against the batch size B.
+
+For each creature and B, a `CreatureVectorEnv` (frame_skip 1, h = 1/60 s, the registered defaults
+otherwise) is reset with seed 0 and stepped with uniformly random actions (the action space seeded
+with 0): `--warmup` steps untimed, then `--steps` timed `step` calls. Env steps per second are
+B / (median wall time of one call); the spread beside it is the interquartile range of the calls.
+Random activations switch every muscle at every step, which is harder for the solver than a
+gait: the Newton iterations per step are in the table. Runs use `--threads` intra-op threads
+(default 1, best for meshes this small on a shared machine).
+
+Run:  python scripts/bench_env.py                                    # worm and quadruped, B = 1, 16, 64
+      python scripts/bench_env.py --creatures worm --batch-sizes 1 4 --steps 3 --no-plot   # quick
+      python scripts/bench_env.py --profile                          # also where the time goes
+Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import csv
+import io
+import pstats
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from energysim.creatures import CREATURES
+from energysim.envs import CreatureVectorEnv
+
+# the rate the project aims at: the batched worm at B = 64 on 2 CPU cores
+TARGET_STEPS_PER_SECOND = 1000.0
+
+
+@dataclass(frozen=True)
+class Row:
+    """One (creature, B) line of the table."""
+
+    creature: str
+    batch: int
+    device: str
+    steps: int
+    ms_per_call: float
+    ms_per_call_iqr: float
+    env_steps_per_second: float
+    env_steps_per_second_low: float
+    env_steps_per_second_high: float
+    newton_iterations: float
+    failures: int
+
+
+def quartiles(values: list[float]) -> tuple[float, float, float]:
+    """First quartile, median and third quartile (the values themselves when there are fewer than 2)."""
+    if len(values) < 2:
+        return values[0], values[0], values[0]
+    low, median, high = statistics.quantiles(values, n=4, method="inclusive")
+    return low, median, high
+
+
+def bench(creature: str, batch: int, steps: int, warmup: int, device: str, profile: bool) -> Row:
+    """Time `steps` calls of a batched env of `batch` creatures; one table row."""
+    env = CreatureVectorEnv(batch, creature, frame_skip=1, dt=1 / 60, device=device)
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    for _ in range(warmup):
+        env.step(env.action_space.sample())
+    walls, iterations, failures = [], [], 0
+    profiler = cProfile.Profile() if profile else None
+    for _ in range(steps):
+        actions = env.action_space.sample()
+        if profiler is not None:
+            profiler.enable()
+        start = time.perf_counter()
+        _, _, terminated, _, info = env.step(actions)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        walls.append(time.perf_counter() - start)
+        if profiler is not None:
+            profiler.disable()
+        stepped = info.get("_solver_iterations", np.zeros(batch, dtype=bool))
+        if stepped.any():
+            iterations.append(float(info["solver_iterations"][stepped].mean()))
+        failures += int(terminated.sum())
+    if profiler is not None:
+        text = io.StringIO()
+        pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
+        print(f"--- profile: {creature}, B = {batch}, {steps} calls ---\n{text.getvalue()}")
+    low, median, high = quartiles(walls)
+    rate = batch / median
+    print(f"{creature} B={batch}: {steps} calls, median {1e3 * median:.1f} ms = {rate:.1f} env steps/s")
+    return Row(
+        creature=creature,
+        batch=batch,
+        device=device,
+        steps=steps,
+        ms_per_call=1e3 * median,
+        ms_per_call_iqr=1e3 * (high - low),
+        env_steps_per_second=batch / median,
+        env_steps_per_second_low=batch / high,
+        env_steps_per_second_high=batch / low,
+        newton_iterations=statistics.fmean(iterations) if iterations else float("nan"),
+        failures=failures,
+    )
+
+
+def markdown(rows: list[Row], threads: int) -> str:
+    """The results as a markdown table."""
+    lines = [
+        "Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, float64, "
+        f"Newton–CG (tol 1e-4 m/s), random actions (seed 0), {threads} thread(s), device {rows[0].device}. "
+        "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
+        "range. Newton iterations: per physics step, the batched solve's count (its slowest entry).",
+        "",
+        "| creature | B | calls | median ms/call (IQR) | env steps/s (IQR range) | Newton iterations/step "
+        "| failures |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.creature} | {r.batch} | {r.steps} | {r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f}) | "
+            f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–"
+            f"{r.env_steps_per_second_high:.1f}) | {r.newton_iterations:.1f} | {r.failures} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[Row], path: Path) -> None:
+    """Env steps per second against B, one line per creature, with the target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for creature in dict.fromkeys(r.creature for r in rows):
+        mine = [r for r in rows if r.creature == creature]
+        batches = [r.batch for r in mine]
+        rate = np.array([r.env_steps_per_second for r in mine])
+        spread = np.array(
+            [
+                [r.env_steps_per_second - r.env_steps_per_second_low for r in mine],
+                [r.env_steps_per_second_high - r.env_steps_per_second for r in mine],
+            ]
+        )
+        axis.errorbar(batches, rate, yerr=spread, marker="o", capsize=3, label=creature)
+    axis.axhline(
+        TARGET_STEPS_PER_SECOND, color="black", linestyle="--", linewidth=1, label="target (worm, B = 64)"
+    )
+    axis.set(xscale="log", yscale="log", xlabel="batch size B", ylabel="env steps per second")
+    axis.set_title(f"Batched env throughput, {rows[0].device}")
+    axis.grid(True, which="both", alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    temporary = path.with_suffix(".tmp.png")
+    figure.savefig(temporary, dpi=120)
+    temporary.replace(path)
+    plt.close(figure)
+
+
+def main(argv: list[str] | None = None) -> list[Row]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--creatures", nargs="+", default=["worm", "quadruped"], choices=CREATURES)
+    parser.add_argument("--batch-sizes", nargs="+", type=int, default=[1, 16, 64], help="values of B")
+    parser.add_argument("--steps", type=int, default=5, help="timed step calls per (creature, B)")
+    parser.add_argument("--warmup", type=int, default=1, help="untimed step calls first")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    default_device = "cuda" if torch.cuda.is_available() else "cpu"
+    parser.add_argument("--device", default=default_device, help=f"torch device (default {default_device})")
+    parser.add_argument("--profile", action="store_true", help="print cProfile's top functions per run")
+    parser.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+    if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
+        parser.error("batch sizes, --steps and --threads must be >= 1 and --warmup >= 0")
+    torch.set_num_threads(args.threads)
+    rows = [
+        bench(creature, batch, args.steps, args.warmup, args.device, args.profile)
+        for creature in args.creatures
+        for batch in args.batch_sizes
+    ]
+    table = markdown(rows, args.threads)
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "bench_env.csv.tmp", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
+        writer.writeheader()
+        writer.writerows(asdict(r) for r in rows)
+    (args.out / "bench_env.csv.tmp").replace(args.out / "bench_env.csv")
+    (args.out / "bench_env.md.tmp").write_text(table)
+    (args.out / "bench_env.md.tmp").replace(args.out / "bench_env.md")
+    if not args.no_plot:
+        plot(rows, args.out / "bench_env.png")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

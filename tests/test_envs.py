@@ -1,0 +1,422 @@
+"""The Gymnasium environments of the shipped creatures: API conformance, seeding, the reward against an
+independent simulation, batched against single environments, autoreset, numerical failures, bad input.
+
+Heavy tests run a short form on CI (the 2D crawler, a tiny time step for the API checks) and the full
+form with ENERGYSIM_HEAVY=1 (every creature at the registered defaults, the worm in 3D).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+gymnasium = pytest.importorskip("gymnasium")
+
+from conftest import random_rotation  # noqa: E402
+from gymnasium.utils.env_checker import check_env  # noqa: E402
+
+import energysim as es  # noqa: E402
+import energysim.envs as envs  # noqa: E402
+from energysim.creatures import CREATURES, load_creature, resting_state  # noqa: E402
+from energysim.envs import CreatureEnv, CreatureVectorEnv, ObservationLayout  # noqa: E402
+from energysim.envs.observation import (  # noqa: E402
+    best_fit_rotation,
+    farthest_point_markers,
+    orientation_features,
+)
+
+FULL = os.environ.get("ENERGYSIM_HEAVY") == "1"
+ROOT = Path(__file__).resolve().parents[1]
+# the batched solve may sum in another order than a single one: equal to rounding, far inside this
+BATCH_TOLERANCE = 1e-8
+FLOAT32_TOLERANCE = 1e-6
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    # meshes this small gain nothing from intra-op threads, and lose much on a busy machine
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def centre_of_mass_x(scene: es.Scene, state: torch.Tensor) -> float:
+    """Mass-weighted mean x of a state `[2·n·d]`, from the masses as numpy: an independent reduction."""
+    x = state[: scene.num_dofs].reshape(scene.num_vertices, scene.dim).numpy()
+    mass = scene.vertex_mass.numpy()
+    return float(mass @ x[:, 0] / mass.sum())
+
+
+def test_import_energysim_does_not_import_gymnasium() -> None:
+    code = "import sys, energysim; print('gymnasium' in sys.modules)"
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
+    )
+    assert result.stdout.strip() == "False"
+
+
+def test_every_creature_is_registered_with_both_entry_points() -> None:
+    assert set(envs.ENV_IDS) == set(CREATURES)
+    assert envs.ENV_IDS["worm"] == "energysim/Worm-v0"
+    assert envs.ENV_IDS["crawler2d"] == "energysim/Crawler2d-v0"
+    for creature, env_id in envs.ENV_IDS.items():
+        spec = gymnasium.spec(env_id)
+        assert spec.entry_point == "energysim.envs.creature_env:CreatureEnv"
+        assert spec.vector_entry_point == "energysim.envs.vector_env:CreatureVectorEnv"
+        assert spec.kwargs == {"creature": creature}
+        assert spec.max_episode_steps == envs.MAX_EPISODE_STEPS == 300
+
+
+def test_make_and_make_vec_build_the_single_and_the_batched_env() -> None:
+    env = gymnasium.make("energysim/Crawler2d-v0")
+    assert isinstance(env.unwrapped, CreatureEnv)
+    assert env.spec.max_episode_steps == 300
+    vector = gymnasium.make_vec("energysim/Crawler2d-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    assert isinstance(vector.unwrapped, CreatureVectorEnv)
+    assert vector.num_envs == 3
+    # make_vec hands the registration's episode length to the vector env, which truncates itself
+    assert vector.unwrapped.config.max_episode_steps == 300
+    assert vector.single_observation_space == env.observation_space
+    assert vector.single_action_space == env.action_space
+    assert vector.observation_space.shape == (3, *env.observation_space.shape)
+    assert vector.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.NEXT_STEP
+    # crawler2d: height 1, velocity 2, 12 markers x 2 x 2, orientation 2, 10 actuators
+    assert env.observation_space.shape == (1 + 2 + 48 + 2 + 10,)
+    assert env.observation_space.dtype == np.float32
+    assert env.action_space.shape == (10,)
+    assert (env.action_space.low == -1).all() and (env.action_space.high == 1).all()
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("creature", CREATURES)
+def test_gymnasium_env_checker_passes(creature: str) -> None:
+    # the checker tests the API (spaces, seeding, determinism, returned data); CI takes tiny steps
+    # (h = 1 ms) so that the checker's random full-range activations cost a few Newton iterations
+    options = {} if FULL else {"dt": 1e-3}
+    render_mode = "rgb_array" if creature in ("worm", "crawler2d") else None
+    env = gymnasium.make(envs.ENV_IDS[creature], render_mode=render_mode, **options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # positions and velocities have no natural bounds; Gymnasium's MuJoCo envs are unbounded too
+        warnings.filterwarnings("ignore", message=".*Box observation space m.*infinity")
+        check_env(env.unwrapped)
+
+
+def test_same_seed_gives_the_same_rollout_and_another_seed_another_start() -> None:
+    actions = np.random.default_rng(0).uniform(-0.5, 0.5, size=(3, 10)).astype(np.float32)
+
+    def rollout(seed: int) -> list[np.ndarray]:
+        env = CreatureEnv("crawler2d")
+        observation, _ = env.reset(seed=seed)
+        records = [observation]
+        for action in actions:
+            observation, reward, *_ = env.step(action)
+            records += [observation, np.array([reward])]
+        return records
+
+    first, second = rollout(5), rollout(5)
+    assert all(np.array_equal(a, b) for a, b in zip(first, second, strict=True))
+    assert not np.array_equal(rollout(6)[0], first[0])
+
+
+def test_reset_noise_keeps_the_body_just_above_the_ground() -> None:
+    scale = 2e-3
+    env = CreatureEnv("worm", reset_noise_scale=scale)
+    env.reset(seed=3)
+    scene = env.simulation.scene
+    x, v = (part[0] for part in scene.split_state(env.state))
+    d_hat = env.simulation.ground.barrier_distance
+    # the lowest vertex is at d̂/2: in contact (inside the barrier's reach), outside the ground
+    assert float(x[:, 1].min()) == pytest.approx(0.5 * d_hat, rel=1e-12)
+    offset = x - scene.rest_positions
+    lift = offset[:, 1].mean()
+    assert float(offset[:, [0, 2]].abs().max()) <= scale
+    assert float((offset[:, 1] - lift).abs().max()) <= 2 * scale
+    assert 0 < float(v.abs().max()) <= scale
+    # no noise: exactly the resting state the walking scripts start from
+    quiet = CreatureEnv("worm", reset_noise_scale=0.0)
+    quiet.reset(seed=3)
+    assert torch.equal(quiet.state[0], resting_state(quiet.simulation.scene))
+
+
+def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity() -> None:
+    frame_skip, dt, forward_weight, ctrl_weight = 3, 1 / 60, 2.5, 0.1
+    env = CreatureEnv(
+        "crawler2d",
+        frame_skip=frame_skip,
+        dt=dt,
+        forward_reward_weight=forward_weight,
+        ctrl_cost_weight=ctrl_weight,
+    )
+    env.reset(seed=1)
+    start = env.state[0].clone()
+    action = np.linspace(-1.6, 1.6, 10)  # partly outside [-1, 1]: the env clips
+    observation, reward, terminated, truncated, info = env.step(action)
+    assert not terminated and not truncated and not info["numerical_failure"]
+    clipped = np.clip(action, -1, 1)
+    assert reward == pytest.approx(info["reward_forward"] + info["reward_ctrl"], abs=1e-15)
+    assert info["reward_ctrl"] == pytest.approx(-ctrl_weight * (clipped**2).sum(), rel=1e-12)
+    assert info["reward_forward"] == pytest.approx(forward_weight * info["x_velocity"], rel=1e-12)
+
+    # the same three steps, simulated apart from the env from its start state
+    creature = load_creature("crawler2d")
+    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4))
+    states = [start]
+    for _ in range(frame_skip):
+        states.append(es.step(scene, states[-1], torch.from_numpy(clipped)).state)
+    assert torch.allclose(states[-1], env.state[0], rtol=0, atol=BATCH_TOLERANCE)
+    displacement = centre_of_mass_x(scene, states[-1]) - centre_of_mass_x(scene, start)
+    finite_difference = displacement / (frame_skip * dt)
+    assert info["x_velocity"] == pytest.approx(finite_difference, rel=1e-7, abs=1e-12)
+    assert info["x_position"] == pytest.approx(centre_of_mass_x(scene, states[-1]), abs=1e-12)
+    # implicit Euler: v_{k+1} = (x_{k+1} − x_k)/h, so the mean of the sub-steps' centre-of-mass
+    # velocities is the same finite difference
+    mass = scene.vertex_mass / scene.vertex_mass.sum()
+    velocities = [float(mass @ scene.split_state(s)[1][0, :, 0]) for s in states[1:]]
+    assert info["x_velocity"] == pytest.approx(np.mean(velocities), rel=1e-7, abs=1e-12)
+    # the observation's centre-of-mass velocity is that at the end of the step
+    layout = env.simulation.layout
+    assert observation[layout.com_velocity][0] == pytest.approx(velocities[-1], abs=FLOAT32_TOLERANCE)
+    assert np.allclose(observation[layout.activation], clipped, atol=FLOAT32_TOLERANCE)
+
+
+def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11) -> None:
+    """Step a vector env and `batch` single envs (seeds seed + i) with the same actions; compare."""
+    vector = CreatureVectorEnv(batch, creature)
+    singles = [CreatureEnv(creature) for _ in range(batch)]
+    observations, _ = vector.reset(seed=seed)
+    for i, env in enumerate(singles):
+        assert np.array_equal(env.reset(seed=seed + i)[0], observations[i])
+    gait = load_creature(creature).gait_action(torch.arange(1, steps + 1) / 60).numpy()
+    rng = np.random.default_rng(seed)
+    for k in range(steps):
+        actions = np.clip(gait[k] + rng.uniform(-0.3, 0.3, size=(batch, gait.shape[1])), -1, 1)
+        observations, rewards, terminated, truncated, info = vector.step(actions)
+        assert not terminated.any() and not truncated.any()
+        assert np.array_equal(vector.activations.numpy(), actions)
+        for i, env in enumerate(singles):
+            observation, reward, _, _, single_info = env.step(actions[i])
+            assert torch.allclose(vector.states[i], env.state[0], rtol=0, atol=BATCH_TOLERANCE)
+            assert np.allclose(observations[i], observation, rtol=0, atol=FLOAT32_TOLERANCE)
+            assert abs(rewards[i] - reward) < BATCH_TOLERANCE
+            for key in ("x_position", "x_velocity", "reward_forward", "reward_ctrl"):
+                assert abs(info[key][i] - single_info[key]) < BATCH_TOLERANCE
+
+
+@pytest.mark.heavy
+def test_batched_step_equals_single_env_steps() -> None:
+    # one batched solve of B entries gives each entry what its own env gives (CI: the 2D crawler)
+    if FULL:
+        batched_and_single("worm", batch=4, steps=3)
+    else:
+        batched_and_single("crawler2d", batch=3, steps=2)
+
+
+def test_autoreset_is_next_step_like_gymnasiums_sync_vector_env() -> None:
+    def single() -> CreatureEnv:
+        return CreatureEnv("crawler2d", max_episode_steps=2)
+
+    mode = gymnasium.vector.AutoresetMode.NEXT_STEP
+    reference = gymnasium.vector.SyncVectorEnv([single, single], autoreset_mode=mode)
+    vector = CreatureVectorEnv(2, "crawler2d", max_episode_steps=2)
+    first, _ = vector.reset(seed=4)
+    assert np.array_equal(first, reference.reset(seed=4)[0])
+    actions = np.random.default_rng(1).uniform(-0.3, 0.3, size=(4, 2, 10))
+    for k, action in enumerate(actions):
+        got = vector.step(action)
+        expected = reference.step(action)
+        assert np.allclose(got[0], expected[0], rtol=0, atol=FLOAT32_TOLERANCE)
+        assert np.allclose(got[1], expected[1], rtol=0, atol=BATCH_TOLERANCE)
+        assert np.array_equal(got[2], expected[2]) and np.array_equal(got[3], expected[3])
+        info, expected_info = got[4], expected[4]
+        # the same keys and masks; the same values but the iteration count (a batched solve reports
+        # the iterations of its slowest entry)
+        assert info.keys() == expected_info.keys()
+        for key, value in info.items():
+            if key.startswith("_"):
+                assert np.array_equal(value, expected_info[key])
+            elif key != "solver_iterations":
+                assert np.allclose(value, expected_info[key], rtol=0, atol=BATCH_TOLERANCE)
+        if k == 1:  # the second step reaches max_episode_steps
+            assert got[3].all()
+        if k == 2:  # ...so the third resets: reward 0, a fresh start from each entry's generator
+            assert (got[1] == 0).all() and not got[3].any()
+            assert "reward_forward" not in info and info["_x_position"].all()
+            assert not np.allclose(got[0], first)
+        if k == 3:
+            assert info["_reward_forward"].all() and (vector.elapsed_steps == 1).all()
+
+
+def test_numerical_failure_terminates_with_the_last_good_observation() -> None:
+    # with at most 20 Newton iterations, resting needs about 5 but switching every muscle to −1
+    # at once needs about 50: a real ConvergenceError from the strict solver
+    env = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    before, _ = env.reset(seed=0)
+    state = env.state.clone()
+    observation, reward, terminated, truncated, info = env.step(-np.ones(10))
+    assert terminated and info["numerical_failure"] and not truncated
+    assert np.isfinite(observation).all() and np.isfinite(reward)
+    assert torch.equal(env.state, state)
+    layout = env.simulation.layout
+    body = slice(0, layout.activation.start)
+    assert np.array_equal(observation[body], before[body])
+    assert info["x_velocity"] == 0.0 and info["solver_iterations"] == 0
+    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    calm.reset(seed=0)
+    assert not calm.step(np.zeros(10))[2]
+
+
+def test_one_failing_entry_does_not_stop_the_others() -> None:
+    vector = CreatureVectorEnv(3, "crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    vector.reset(seed=0)
+    actions = np.zeros((3, 10))
+    actions[1] = -1.0
+    observations, rewards, terminated, _, info = vector.step(actions)
+    assert terminated.tolist() == [False, True, False]
+    assert info["numerical_failure"].tolist() == [False, True, False]
+    assert np.isfinite(observations).all() and np.isfinite(rewards).all()
+    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    calm.reset(seed=0)
+    calm.step(np.zeros(10))
+    for i in (0, 2):
+        assert torch.allclose(vector.states[i], calm.state[0], rtol=0, atol=BATCH_TOLERANCE)
+    # the next call resets the failed entry and steps the others
+    _, rewards, terminated, _, info = vector.step(np.zeros((3, 10)))
+    assert rewards[1] == 0 and not terminated.any()
+    assert info["_reward_forward"].tolist() == [True, False, True]
+
+
+def test_markers_are_well_spread_surface_vertices_chosen_deterministically() -> None:
+    mesh = load_creature("worm").mesh
+    surface = mesh.surface_vertices()
+    markers = farthest_point_markers(mesh.vertices, surface, 12)
+    assert torch.equal(markers, farthest_point_markers(mesh.vertices, surface, 12))
+    assert len(set(markers.tolist())) == 12 and set(markers.tolist()) <= set(surface.tolist())
+    # farthest-point sampling spreads them: no two of the 12 closer than a tenth of the body's diagonal
+    points = mesh.vertices[markers]
+    gaps = torch.cdist(points, points) + torch.eye(12, dtype=points.dtype) * 1e9
+    low, high = mesh.bounding_box()
+    assert float(gaps.min()) > 0.1 * float((high - low).norm())
+    # the two ends of the worm are markers
+    assert float(points[:, 0].min()) == float(low[0]) and float(points[:, 0].max()) == float(high[0])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_orientation_recovers_a_rigid_rotation(dim: int) -> None:
+    creature = load_creature("worm" if dim == 3 else "crawler2d")
+    rest = creature.mesh.vertices
+    mass = torch.rand(rest.shape[0], dtype=torch.float64) + 0.5
+    generator = torch.Generator().manual_seed(2)
+    rotations = torch.stack([random_rotation(dim, generator) for _ in range(4)])
+    moved = rest @ rotations.mT + torch.randn(4, 1, dim, dtype=torch.float64)
+    assert torch.allclose(best_fit_rotation(moved, rest, mass), rotations, atol=1e-12)
+    identity = orientation_features(torch.eye(dim, dtype=torch.float64)[None])
+    expected = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0] if dim == 3 else [1.0, 0.0]
+    assert identity[0].tolist() == expected
+
+
+def test_observation_of_a_rigidly_moved_body() -> None:
+    env = CreatureEnv("worm", reset_noise_scale=0.0)
+    simulation = env.simulation
+    scene = simulation.scene
+    rest = scene.rest_positions
+    rotation = random_rotation(3, torch.Generator().manual_seed(5))
+    spin = torch.tensor([0.0, 0.7, 0.0], dtype=torch.float64)  # rad/s about y
+    offset = torch.tensor([0.3, 0.05, -0.2], dtype=torch.float64)
+    x = rest @ rotation.T + offset
+    mass = scene.vertex_mass / scene.vertex_mass.sum()
+    com = mass @ x
+    drift = torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)
+    v = torch.linalg.cross(spin.expand_as(x), x - com) + drift
+    state = torch.cat([x.flatten(), v.flatten()])[None]
+    activation = torch.linspace(-1, 1, 10, dtype=torch.float64)[None]
+    observation = simulation.observe(state, activation)[0]
+    layout: ObservationLayout = simulation.layout
+    assert layout.size == observation.numel() == 1 + 3 + 36 + 36 + 6 + 10
+    assert float(observation[layout.com_height]) == pytest.approx(float(com[1]), abs=1e-14)
+    assert torch.allclose(observation[layout.com_velocity], drift, atol=1e-14)
+    markers = simulation.markers
+    rest_com = mass @ rest
+    expected = (rest[markers] - rest_com) @ rotation.T
+    assert torch.allclose(observation[layout.marker_positions], expected.flatten(), atol=1e-14)
+    relative = torch.linalg.cross(spin.expand(markers.numel(), 3), x[markers] - com)
+    assert torch.allclose(observation[layout.marker_velocities], relative.flatten(), atol=1e-14)
+    assert torch.allclose(observation[layout.orientation], rotation[:, :2].T.flatten(), atol=1e-12)
+    assert torch.equal(observation[layout.activation], activation[0])
+
+
+@pytest.mark.parametrize("creature", ["worm", "walker2d"])
+def test_render_draws_the_body_on_the_ground(creature: str) -> None:
+    env = CreatureEnv(creature, render_mode="rgb_array")
+    assert env.render() is None  # nothing to draw before reset
+    env.reset(seed=0)
+    image = env.render()
+    assert image.shape == (270, 480, 3) and image.dtype == np.uint8
+    ground_row = int(np.ceil(270 * 0.8))
+    sky, ground = image[:ground_row], image[ground_row:]
+    body = (sky != sky[0, 0]).any(axis=-1)
+    assert body.any() and (ground == ground[0, 0]).all()
+    rows, columns = np.nonzero(body)
+    # the body stands on the ground, centred, one third of the view wide at most
+    assert rows.max() == ground_row - 1
+    assert abs(columns.mean() - 240) < 40 and columns.max() - columns.min() <= 480 / 3 + 2
+
+
+def test_bad_arguments_raise_clear_errors() -> None:
+    with pytest.raises(ValueError, match="num_envs must be an integer >= 1"):
+        CreatureVectorEnv(0, "worm")
+    with pytest.raises(ValueError, match="frame_skip must be an integer >= 1"):
+        CreatureEnv("worm", frame_skip=0)
+    with pytest.raises(ValueError, match="unknown creature 'dragon'"):
+        CreatureEnv("dragon")
+    with pytest.raises(ValueError, match="dt must be a finite number"):
+        CreatureEnv("worm", dt=-0.01)
+    with pytest.raises(ValueError, match="reset_noise_scale"):
+        CreatureEnv("worm", reset_noise_scale=float("nan"))
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        CreatureEnv("worm", max_episode_steps=0)
+    with pytest.raises(ValueError, match="num_markers must be at most"):
+        CreatureEnv("worm", num_markers=10_000)
+    with pytest.raises(ValueError, match="render_mode"):
+        CreatureEnv("worm", render_mode="human")
+    env = CreatureEnv("worm")
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(10))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must have shape \(10,\)"):
+        env.step(np.zeros(9))
+    with pytest.raises(ValueError, match="non-finite"):
+        env.step(np.full(10, np.nan))
+    vector = CreatureVectorEnv(2, "worm")
+    vector.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 10\)"):
+        vector.step(np.zeros((3, 10)))
+    with pytest.raises(ValueError, match="seed must be None, an int or a list of 2 seeds"):
+        vector.reset(seed=[1, 2, 3])
+
+
+def test_bench_env_writes_its_table(tmp_path: Path) -> None:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import bench_env
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    rows = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "1", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path)]
+    )
+    assert [row.batch for row in rows] == [1, 2]
+    for row in rows:
+        assert row.failures == 0 and row.newton_iterations >= 1
+        assert row.env_steps_per_second == pytest.approx(row.batch / (1e-3 * row.ms_per_call))
+    table = (tmp_path / "bench_env.md").read_text()
+    assert "| crawler2d | 2 |" in table and (tmp_path / "bench_env.csv").exists()
