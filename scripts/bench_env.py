@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES
 from energysim.envs import CreatureVectorEnv
 
@@ -176,7 +177,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     args = parser.parse_args(argv)
     if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
         parser.error("batch sizes, --steps and --threads must be >= 1 and --warmup >= 0")
-    torch.set_num_threads(args.threads)
+    configure_cpu(args.threads)
     rows = [
         bench(creature, batch, args.steps, args.warmup, args.device, args.profile)
         for creature in args.creatures
