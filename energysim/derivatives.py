@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from energysim.assembly import PATTERNS, SparsityPattern, assemble
+from energysim.block_tridiagonal import LAYOUTS, LevelLayout, gather_blocks
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 EnergyFn = Callable[[Tensor], Tensor]
@@ -150,6 +151,23 @@ class HessianOperator:
         rows, cols = pattern.row_indices, pattern.col_indices
         out.index_put_((rows // size, rows % size, cols % size), matrix.values())
         return out
+
+    def level_blocks(self, like: Tensor) -> tuple[Tensor, Tensor, LevelLayout] | None:
+        """The matrix in block-tridiagonal form over breadth-first vertex levels (see
+        `energysim.block_tridiagonal`): diagonal blocks `[B, L, S, S]`, sub-diagonal blocks
+        `[B, L−1, S, S]` and the layout, or None when some term has no assembled blocks."""
+        matrix = self.matrix(like)
+        if matrix is None or self.extra_products:
+            return None
+        layout = self.level_layout(like)
+        diagonal, lower = gather_blocks(matrix.values(), layout)
+        return diagonal, lower, layout
+
+    def level_layout(self, like: Tensor) -> LevelLayout:
+        """The block-tridiagonal layout of this operator's sparsity pattern (cached per pattern)."""
+        _, n, dim = like.shape
+        groups = [elements for elements, _ in self.blocks]
+        return LAYOUTS.get(self._pattern(like), groups, n, dim)
 
     def vertex_blocks(self, like: Tensor) -> Tensor:
         """The d×d diagonal block of H at every vertex, shape `[B, n, d, d]`, for block-Jacobi.

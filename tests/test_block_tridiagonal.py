@@ -1,0 +1,145 @@
+"""Block-tridiagonal direct solves over breadth-first vertex levels, checked against dense float64
+algebra (torch.linalg.solve / Cholesky of the assembled matrix)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import energysim as es
+from energysim.block_tridiagonal import (
+    block_cholesky,
+    block_cholesky_solve,
+    from_levels,
+    to_levels,
+    vertex_levels,
+)
+from energysim.creatures import resting_state
+from energysim.implicit import step_terms
+from energysim.objective import Objective
+
+RTOL = 1e-10
+
+
+def _objective(
+    scene: es.Scene, state: torch.Tensor, action: torch.Tensor | None
+) -> tuple[Objective, torch.Tensor]:
+    """The step objective at the previous positions, built as `energysim.step.step` builds it."""
+    x, v = scene.split_state(state)
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, v, scene.free)
+    objective = Objective(
+        terms=terms, free=scene.free, residual_scale=scene.dt / scene.vertex_mass, action=action, anchor=x
+    )
+    terms[0].anchor = x
+    return objective, x
+
+
+def _worm_batch(
+    noise: list[float], fix: bool = False, activation: float = 0.3
+) -> tuple[es.Scene, torch.Tensor, torch.Tensor]:
+    """A worm scene, a batch of perturbed resting states (one entry per noise amplitude, in m) and
+    random actions in [−activation, activation]. Full activations at rest make H indefinite."""
+    worm = es.load_creature("worm")
+    scene = worm.scene()
+    if fix:
+        scene.fix(torch.nonzero(scene.rest_positions[:, 0] == scene.rest_positions[:, 0].min()).flatten())
+    generator = torch.Generator().manual_seed(3)
+    batch = len(noise)
+    state = resting_state(scene).expand(batch, -1).clone()
+    x, v = scene.split_state(state)
+    amplitude = torch.tensor(noise, dtype=x.dtype)[:, None, None]
+    shift = amplitude * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+    shift[..., 1] = shift[..., 1].abs()  # upwards only: every vertex stays above the ground
+    x = x + shift
+    v = v + 0.1 * torch.randn(v.shape, generator=generator, dtype=v.dtype)
+    action = activation * (2 * torch.rand(batch, worm.num_actuators, generator=generator, dtype=x.dtype) - 1)
+    return scene, torch.cat([x.flatten(1), v.flatten(1)], dim=1), action
+
+
+def _meshes() -> dict[str, es.TetMesh | es.TriMesh]:
+    return {
+        "worm": es.load_creature("worm").mesh,
+        "tet_box": es.TetMesh.box(size=(1.0, 1.0, 1.0), cells=(3, 3, 3)),
+        "tri_box": es.TriMesh.box(size=(1.0, 0.2), cells=(20, 4)),
+        "quadruped": es.load_creature("quadruped").mesh,
+    }
+
+
+@pytest.mark.parametrize("name", ["worm", "tet_box", "tri_box", "quadruped"])
+def test_every_element_lies_in_one_level_or_two_adjacent(name: str) -> None:
+    mesh = _meshes()[name]
+    elements = mesh.elements
+    levels = vertex_levels([elements], mesh.vertices.shape[0])
+    spread = levels[elements].amax(dim=1) - levels[elements].amin(dim=1)
+    assert int(spread.max()) <= 1
+    # the levels are 0 … L−1 with none empty, so the padded blocks hold no empty level
+    widths = torch.bincount(levels)
+    assert int(widths.min()) >= 1 and int(levels.min()) == 0
+
+
+def test_worm_levels_are_cross_sections() -> None:
+    # the worm is a 16 × 3 × 3 vertex grid along x: levels from one end are at most 9 vertices wide,
+    # and there are at least 16 of them (a dense factorisation costs ≈ 100× more)
+    mesh = es.load_creature("worm").mesh
+    levels = vertex_levels([mesh.elements], mesh.vertices.shape[0])
+    widths = torch.bincount(levels)
+    assert widths.numel() >= 16 and int(widths.max()) <= 9
+
+
+@pytest.mark.parametrize("fix", [False, True])
+def test_block_solve_equals_dense_solve_on_the_worm_hessian(fix: bool) -> None:
+    scene, state, action = _worm_batch([0.0, 1e-4, 3e-4], fix=fix)
+    objective, x = _objective(scene, state, action)
+    operator = objective.hessian(x)
+    dense = operator.dense(x)
+    diagonal, lower, layout = operator.level_blocks(x)
+    rhs = torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=x.dtype)
+    factor = block_cholesky(diagonal, lower)
+    assert bool(factor.positive_definite.all())
+    solution = from_levels(block_cholesky_solve(factor, to_levels(rhs, layout)), layout, x)
+    expected = torch.linalg.solve(dense, rhs.reshape(3, -1, 1)).reshape(x.shape)
+    error = (solution - expected).flatten(1).norm(dim=1) / expected.flatten(1).norm(dim=1)
+    assert float(error.max()) < RTOL
+    if fix:  # fixed DOFs are eliminated: identity rows, so the solve returns the right-hand side there
+        fixed = ~scene.free
+        torch.testing.assert_close(solution[:, fixed], rhs[:, fixed], rtol=RTOL, atol=0.0)
+
+
+def test_indefinite_entry_is_unsolved_and_the_others_exact() -> None:
+    # 3 mm of noise on 1 cm elements inverts some tets: that entry's Hessian is indefinite
+    scene, state, action = _worm_batch([1e-4, 3e-3, 0.0])
+    objective, x = _objective(scene, state, action)
+    operator = objective.hessian(x)
+    dense = operator.dense(x)
+    assert torch.linalg.cholesky_ex(dense).info.ne(0).tolist() == [False, True, False]
+    _, gradient = objective.energy_and_gradient(x)
+    wanted = torch.ones(3, dtype=torch.bool)
+    direction, solved = es.NewtonCG(direct="levels")._direct(operator, -gradient, x, wanted)
+    assert solved.tolist() == [True, False, True]
+    expected = torch.linalg.solve(dense, -gradient.reshape(3, -1, 1)).reshape(x.shape)
+    for entry in (0, 2):
+        error = (direction[entry] - expected[entry]).norm() / expected[entry].norm()
+        assert float(error) < RTOL
+    assert bool((direction[1] == 0).all())
+
+
+def test_step_with_levels_equals_dense_step() -> None:
+    scene, state, action = _worm_batch([0.0, 1e-4, 2e-4], fix=True)
+    dense = es.step(scene, state, action, solver=es.NewtonCG(tol=1e-8, direct="dense"))
+    levels = es.step(scene, state, action, solver=es.NewtonCG(tol=1e-8, direct="levels"))
+    assert dense.stats.converged and levels.stats.converged
+    scale = float((dense.state - state).abs().max())
+    assert float((levels.state - dense.state).abs().max()) < RTOL * max(scale, 1.0)
+
+
+def test_auto_picks_dense_for_one_worm_and_levels_for_a_batch() -> None:
+    scene, state, action = _worm_batch([0.0] * 16)
+    solver = es.NewtonCG()
+    for batch, method in ((1, "dense"), (16, "levels")):
+        objective, x = _objective(scene, state[:batch], action[:batch])
+        assert solver._direct_method(objective.hessian(x), x) == method
+
+
+def test_unknown_direct_method_is_refused() -> None:
+    with pytest.raises(ValueError, match="direct"):
+        es.NewtonCG(direct="sparse")
