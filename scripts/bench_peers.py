@@ -1,0 +1,677 @@
+"""energysim against NVIDIA Warp's soft-body FEM (the `newton` package): wall time per simulated second
+at equal or smaller error.
+
+The scene is `bench_step`'s cantilever (1 × 0.2 × 0.2 m clamped at x = 0, E = 1e5 Pa, ν = 0.3,
+ρ = 1000 kg/m³, gravity 9.81 m/s² along −y), released from rest and simulated for `--checkpoints`
+× 1/12 s (1 s by default). Both simulators get the same tet mesh (energysim's `TetMesh.box`, handed
+to `newton.ModelBuilder.add_soft_mesh`), the same lumped masses (ρ V/4 per vertex), the clamped
+vertices as zero-mass (kinematic) particles, and no contact of any kind (Newton's particle–particle
+and triangle contact are switched off: the energysim scene has none).
+
+Materials. energysim uses the stable neo-Hookean energy of Smith et al. (2018) in the paper's form
+ψ = μ'/2 (I_C − 3) + λ'/2 (J − α)² − μ'/2 log(I_C + 1), μ' = 4μ/3, λ' = λ + 5μ/6, α = 1 + 3μ'/(4λ').
+Newton's semi-implicit solver evaluates that same form with (k_mu, k_lambda) taken as (μ', λ'), so it
+gets k_mu = 4μ/3 and k_lambda = λ + 5μ/6: the same energy. Newton's VBD solver uses the production
+form without the log term, ψ = μ/2 (I_C − 3) + (λ+μ)/2 (J − 1 − μ/(λ+μ))², with the Lamé parameters
+(k_mu = μ, k_lambda = λ): the same small-strain limit, a slightly different energy at finite strain.
+Newton's XPBD tet constraint (C = I_C − 3 and C = J − 1) is a different material altogether (no
+small-strain shear stiffness), so it is not compared.
+
+Error. Every run is compared at the times all of them share (multiples of 1/12 s; nothing is
+interpolated) with one reference trajectory: energysim's Newton–CG at tol 1e-9 m/s on the same mesh,
+at steps h_r = 1/(12 `--reference-steps`), h_r/2 … combined by Richardson extrapolation
+(x_ref = 2 x(h_r/2) − x(h_r) twice over, since implicit Euler's error is first order in h). The
+reference's own error is estimated from the two extrapolations and printed beside it. error = the
+largest distance |x − x_ref| of any vertex at any of those times; final error = at the last time.
+A trajectory is the right yardstick for time integrators: the settled sag would reward any heavily
+damped scheme (and the semi-implicit integrator never settles without added damping, which changes
+the physics), and this beam's sag (about 0.7 m for a 1 m beam) is far outside linear elasticity, so a
+linear scikit-fem static solution is no reference for it.
+
+Runs. energysim: Newton–CG at h = 1/24 … 1/240 s and the tolerances `--tols`, and the reference's own
+three runs (tol 1e-9 m/s, tighter than their error needs: a conservative cost). Peer: the semi-implicit
+integrator at its largest stable step, found by doubling h from 1/(12·`--search-start`) s until the
+run blows up (non-finite, or farther than 1 m from the reference) or its error exceeds
+`--accuracy-limit`, then bisecting the steps per 1/12 s
+between the last good and the first bad count; it is then also timed at 1/2 and 1/4 of that step.
+VBD (implicit Euler by vertex block descent, a fixed number of iterations per step) at `--vbd`
+settings. Wall time per simulated second is the median of `--repeats` runs for the peer (Warp's
+kernels are compiled, and cached, before timing) and of one run for energysim (torch threads:
+`--threads`; Warp's CPU kernels run on one thread). The ratio of an energysim run = its wall time /
+the fastest peer run whose error is at most its own; "ratio VBD" the same against VBD runs alone
+(implicit against implicit).
+
+Without warp/newton installed the energysim side still runs, and the table says the peer is missing
+(`pip install warp-lang newton`); the script then exits normally.
+
+Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, about 10 min on 2 cores
+      python scripts/bench_peers.py --sizes tiny --checkpoints 3 --reference-steps 40 --dts 2 4 --vbd
+Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
+wall time per simulated second) and bench_peers_search.csv (the stable-step search).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+import energysim as es
+from energysim.fem.materials import lame_parameters, smith_parameters
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_step import SIZES, build_scene, write_csv  # noqa: E402
+
+CHECKPOINT_S = 1.0 / 12.0  # every step size below divides it
+YOUNGS_MODULUS, POISSONS_RATIO, DENSITY, GRAVITY = 1e5, 0.3, 1000.0, 9.81  # bench_step's cantilever
+DEFAULT_DTS = (2, 4, 5, 10, 20)  # energysim steps per 1/12 s: h = 1/24, 1/48, 1/60, 1/120, 1/240 s
+DEFAULT_TOLS = (1e-2, 1e-3, 1e-5)  # m/s
+REFERENCE_TOL = 1e-9  # m/s
+BLOWN_UP_M = 1.0  # a run farther than the beam's length from the reference has blown up
+ENERGYSIM = "energysim"
+PEER = "warp/newton"
+
+
+@dataclass(frozen=True)
+class Run:
+    """One simulated trajectory: its cost and its error against the reference; NaN where it failed."""
+
+    tets: int
+    simulator: str  # "energysim" or "warp/newton"
+    method: str  # e.g. "newton-cg tol 1e-05", "semi-implicit", "vbd 10 iterations"
+    tol: float  # energysim: the velocity-residual tolerance (m/s); NaN for the peer
+    dt: float  # time step, s
+    steps_per_checkpoint: int  # steps per 1/12 s
+    wall_s_per_sim_s: float  # median wall time per simulated second
+    repeats: int
+    error_m: float  # largest |x − x_ref| of any vertex at any shared time, m
+    final_error_m: float  # the same at the last time, m
+    converged: str  # energysim: "k/n" steps that reached the tolerance; the peer: "–"
+    ratio: float  # energysim: wall time / the fastest peer run with at most this error; NaN otherwise
+    ratio_vbd: float  # the same against the peer's implicit integrator (VBD) only
+    status: str  # "ok", "unstable", "inaccurate", or why it did not run
+    note: str
+
+
+# --- energysim ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """An energysim run from rest: positions at t = 0, 1/12 s, …, shape `[C + 1, n, 3]` in m, and its cost."""
+
+    positions: Tensor
+    steps_per_checkpoint: int
+    wall_s: float
+    steps: int
+    converged: int  # steps that reached the tolerance
+    hvps: int  # Hessian-vector products, all steps
+
+
+def energysim_trajectory(
+    scene: es.Scene, steps_per_checkpoint: int, checkpoints: int, solver: es.Solver
+) -> Trajectory:
+    """Step the scene from rest at h = 1/(12 `steps_per_checkpoint`) s for `checkpoints` × 1/12 s."""
+    scene.dt = CHECKPOINT_S / steps_per_checkpoint
+    state = scene.initial_state()
+    positions = [scene.split_state(state)[0][0]]
+    converged = steps = hvps = 0
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", es.ConvergenceWarning)  # counted below instead
+        for _ in range(checkpoints):
+            for _ in range(steps_per_checkpoint):
+                result = es.step(scene, state, solver=solver)
+                state = result.state
+                converged += bool(result.stats.converged)
+                hvps += result.stats.hvp_evals
+                steps += 1
+            positions.append(scene.split_state(state)[0][0])
+    return Trajectory(
+        torch.stack(positions), steps_per_checkpoint, time.perf_counter() - start, steps, converged, hvps
+    )
+
+
+def reference_trajectory(
+    scene: es.Scene, checkpoints: int, finest_steps: int
+) -> tuple[Tensor, float, list[Trajectory]]:
+    """Richardson-extrapolated Newton–CG trajectory `[checkpoints + 1, n, 3]` (m) from runs at
+    `finest_steps` / 4, / 2 and / 1 steps per 1/12 s; its estimated error (m: a third of the two
+    extrapolations' largest difference, as their errors fall by 4× per halving of h), and the runs."""
+    if finest_steps % 4:
+        raise ValueError(f"--reference-steps must be a multiple of 4, got {finest_steps}")
+    solver = es.NewtonCG(tol=REFERENCE_TOL, max_iter=100)
+    runs = []
+    for steps in (finest_steps // 4, finest_steps // 2, finest_steps):
+        run = energysim_trajectory(scene, steps, checkpoints, solver)
+        if run.converged != run.steps:
+            raise RuntimeError(
+                f"the reference left {run.steps - run.converged} of {run.steps} steps unconverged"
+            )
+        runs.append(run)
+    coarse = 2 * runs[1].positions - runs[0].positions
+    fine = 2 * runs[2].positions - runs[1].positions
+    return fine, float((fine - coarse).norm(dim=-1).max()) / 3.0, runs
+
+
+def energysim_row(tets: int, tol: float, run: Trajectory, reference: Tensor, note: str = "") -> Run:
+    """`run`'s line of the table."""
+    error, final = errors(run.positions, reference)
+    return Run(
+        tets=tets,
+        simulator=ENERGYSIM,
+        method=f"newton-cg tol {tol:g}",
+        tol=tol,
+        dt=CHECKPOINT_S / run.steps_per_checkpoint,
+        steps_per_checkpoint=run.steps_per_checkpoint,
+        wall_s_per_sim_s=run.wall_s / (run.steps / run.steps_per_checkpoint * CHECKPOINT_S),
+        repeats=1,
+        error_m=error,
+        final_error_m=final,
+        converged=f"{run.converged}/{run.steps}",
+        ratio=math.nan,
+        ratio_vbd=math.nan,
+        status=status_of(error, math.inf),
+        note=f"{run.hvps / run.steps:.0f} HVPs/step" + (f"; {note}" if note else ""),
+    )
+
+
+def errors(positions: Tensor, reference: Tensor) -> tuple[float, float]:
+    """Largest vertex distance over the shared times after t = 0, and at the last one (m); inf when
+    not finite."""
+    distance = (positions.to(reference.dtype) - reference)[1:].norm(dim=-1)
+    if not bool(torch.isfinite(distance).all()):
+        return math.inf, math.inf
+    return float(distance.max()), float(distance[-1].max())
+
+
+def status_of(error: float, accuracy_limit: float) -> str:
+    """ "unstable" when the run blew up (not finite, or farther than `BLOWN_UP_M` from the reference),
+    "inaccurate" past `accuracy_limit` (m), else "ok"."""
+    if not error <= BLOWN_UP_M:
+        return "unstable"
+    return "inaccurate" if error > accuracy_limit else "ok"
+
+
+# --- the peer: NVIDIA Warp through `newton` ----------------------------------------------------
+
+
+def peer_missing() -> str | None:
+    """Why the peer cannot run here (the import error), or None when warp and newton import."""
+    try:
+        import newton  # noqa: F401
+        import warp  # noqa: F401
+    except Exception as error:  # an ImportError, or a broken install that fails while importing
+        return f"{type(error).__name__}: {error}"
+    return None
+
+
+def peer_versions() -> str:
+    import newton
+    import warp
+
+    return f"warp {warp.__version__}, newton {newton.__version__}"
+
+
+class PeerCantilever:
+    """The cantilever as a Newton model with one solver; `trajectory` steps it from rest.
+
+    Args:
+        scene: the energysim scene whose mesh, masses and clamped vertices are copied.
+        method: "semi-implicit" or "vbd".
+        iterations: VBD iterations per step (ignored by the semi-implicit solver).
+    """
+
+    def __init__(self, scene: es.Scene, method: str, iterations: int = 10) -> None:
+        import newton
+        import warp as wp
+
+        wp.config.quiet = True
+        mu, lam = lame_parameters(torch.tensor(YOUNGS_MODULUS), torch.tensor(POISSONS_RATIO))
+        if method == "semi-implicit":
+            # Newton's semi-implicit tet force is Smith et al.'s paper form with (k_mu, k_lambda) = (μ', λ')
+            k_mu, k_lambda, _ = (float(p) for p in smith_parameters(mu, lam))
+        elif method == "vbd":
+            k_mu, k_lambda = float(mu), float(lam)  # VBD converts the Lamé parameters itself
+        else:
+            raise ValueError(f"method must be 'semi-implicit' or 'vbd', got {method!r}")
+        builder = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=(0.0, -GRAVITY, 0.0))
+        builder.add_soft_mesh(
+            pos=wp.vec3(0.0, 0.0, 0.0),
+            rot=wp.quat_identity(),
+            scale=1.0,
+            vel=wp.vec3(0.0, 0.0, 0.0),
+            vertices=[wp.vec3(*v) for v in scene.mesh.vertices.tolist()],
+            indices=scene.mesh.tets.reshape(-1).tolist(),
+            density=DENSITY,
+            k_mu=k_mu,
+            k_lambda=k_lambda,
+            k_damp=0.0,
+            add_surface_mesh_edges=False,
+        )
+        for index in torch.nonzero(scene.fixed).reshape(-1).tolist():
+            builder.particle_mass[index] = 0.0  # zero mass: a kinematic (clamped) particle
+        if method == "vbd":
+            builder.color()  # VBD sweeps the vertices colour by colour
+        model = builder.finalize(device="cpu")
+        # no contact in this scene: no particle–particle contact (it needs a grid and a radius)
+        model.particle_grid = None
+        model.particle_max_radius = 0.0
+        if method == "semi-implicit":
+            solver = newton.solvers.SolverSemiImplicit(model, enable_tri_contact=False)
+        else:
+            solver = newton.solvers.SolverVBD(
+                model, iterations=iterations, particle_enable_self_contact=False
+            )
+        self.model, self.solver, self.method, self.iterations = model, solver, method, iterations
+        self.trajectory(1, 1)  # compile (or load) the kernels before anything is timed
+
+    def trajectory(self, steps_per_checkpoint: int, checkpoints: int) -> tuple[Tensor, float]:
+        """Positions at t = 0, 1/12 s, … from rest, shape `[checkpoints + 1, n, 3]` in m (float32), and
+        the wall time (s)."""
+        dt = CHECKPOINT_S / steps_per_checkpoint
+        current, following = self.model.state(), self.model.state()
+        control = self.model.control()
+        positions = [torch.from_numpy(current.particle_q.numpy().copy())]
+        start = time.perf_counter()
+        for _ in range(checkpoints):
+            for _ in range(steps_per_checkpoint):
+                current.clear_forces()
+                self.solver.step(current, following, control, None, dt)
+                current, following = following, current
+            positions.append(torch.from_numpy(current.particle_q.numpy().copy()))  # also synchronises
+        return torch.stack(positions), time.perf_counter() - start
+
+
+def peer_run(
+    peer: PeerCantilever,
+    steps: int,
+    checkpoints: int,
+    reference: Tensor,
+    repeats: int,
+    tets: int,
+    accuracy_limit: float,
+) -> Run:
+    """`repeats` trajectories of the peer at `steps` per 1/12 s; the median wall time per simulated second."""
+    walls = []
+    for _ in range(repeats):
+        positions, wall = peer.trajectory(steps, checkpoints)
+        walls.append(wall / (checkpoints * CHECKPOINT_S))
+        error, final = errors(positions, reference)
+        if status_of(error, math.inf) == "unstable":
+            break  # no point in timing it again
+    status = status_of(error, accuracy_limit)
+    method = peer.method if peer.method == "semi-implicit" else f"vbd {peer.iterations} iterations"
+    return Run(
+        tets=tets,
+        simulator=PEER,
+        method=method,
+        tol=math.nan,
+        dt=CHECKPOINT_S / steps,
+        steps_per_checkpoint=steps,
+        wall_s_per_sim_s=statistics.median(walls),
+        repeats=len(walls),
+        error_m=error,
+        final_error_m=final,
+        converged="–",
+        ratio=math.nan,
+        ratio_vbd=math.nan,
+        status=status,
+        note="",
+    )
+
+
+def largest_stable_step(
+    peer: PeerCantilever,
+    checkpoints: int,
+    reference: Tensor,
+    tets: int,
+    start: int,
+    accuracy_limit: float,
+) -> tuple[int | None, list[Run]]:
+    """The fewest steps per 1/12 s with a stable, accurate run: halve the count from `start` (double h)
+    until a run fails, then bisect. Returns that count (None when even `start` fails) and every run."""
+    trace, good, bad = [], None, None
+    steps = start
+    while steps >= 1:
+        run = peer_run(peer, steps, checkpoints, reference, 1, tets, accuracy_limit)
+        trace.append(run)
+        if run.status != "ok":
+            bad = steps
+            break
+        good = steps
+        steps //= 2
+    if good is None or bad is None:
+        return good, trace
+    while good - bad > 1:
+        middle = (good + bad) // 2
+        run = peer_run(peer, middle, checkpoints, reference, 1, tets, accuracy_limit)
+        trace.append(run)
+        if run.status == "ok":
+            good = middle
+        else:
+            bad = middle
+    return good, trace
+
+
+# --- the benchmark -----------------------------------------------------------------------------
+
+
+def with_ratios(runs: list[Run]) -> list[Run]:
+    """Each energysim run with its ratios: its wall time / the fastest stable peer run with no larger
+    error, of any integrator and of VBD alone (NaN where there is none)."""
+    peers = [r for r in runs if r.simulator == PEER and r.status == "ok" and math.isfinite(r.error_m)]
+
+    def ratio(run: Run, rivals: list[Run]) -> float:
+        times = [p.wall_s_per_sim_s for p in rivals if p.tets == run.tets and p.error_m <= run.error_m]
+        return run.wall_s_per_sim_s / min(times) if times else math.nan
+
+    return [
+        Run(
+            **{
+                **asdict(r),
+                "ratio": ratio(r, peers),
+                "ratio_vbd": ratio(r, [p for p in peers if "vbd" in p.method]),
+            }
+        )
+        if r.simulator == ENERGYSIM
+        else r
+        for r in runs
+    ]
+
+
+def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run], dict[str, float]]:
+    """All runs at one mesh size; the table's runs, the stable-step search, and the reference's numbers."""
+    scene = build_scene(SIZES[size])
+    tets = scene.mesh.num_elements
+    reference, estimate, reference_runs = reference_trajectory(scene, args.checkpoints, args.reference_steps)
+    reference_wall = sum(run.wall_s for run in reference_runs)
+    info = {"tets": tets, "reference_error_m": estimate, "wall_s": reference_wall}
+    print(f"{size}: reference in {reference_wall:.0f} s, its error ≈ {estimate:.1e} m", flush=True)
+    runs: list[Run] = []
+    for tol in args.tols:
+        for steps in args.dts:
+            run = energysim_trajectory(scene, steps, args.checkpoints, es.NewtonCG(tol=tol))
+            runs.append(energysim_row(tets, tol, run, reference))
+            print(runs[-1], flush=True)
+    # the reference's own runs are energysim runs too, at small h (their error: their differences)
+    for run in reference_runs:
+        runs.append(energysim_row(tets, REFERENCE_TOL, run, reference, "a run of the reference"))
+    search: list[Run] = []
+    missing = peer_missing()
+    if missing is not None:
+        runs.append(
+            Run(
+                tets=tets,
+                simulator=PEER,
+                method="–",
+                tol=math.nan,
+                dt=math.nan,
+                steps_per_checkpoint=0,
+                wall_s_per_sim_s=math.nan,
+                repeats=0,
+                error_m=math.nan,
+                final_error_m=math.nan,
+                converged="–",
+                ratio=math.nan,
+                ratio_vbd=math.nan,
+                status="not installed",
+                note=f"{missing}; install with `pip install warp-lang newton`",
+            )
+        )
+        print(f"the peer is not installed ({missing}); only energysim ran", flush=True)
+        return with_ratios(runs), search, info
+    semi = PeerCantilever(scene, "semi-implicit")
+    largest, search = largest_stable_step(
+        semi, args.checkpoints, reference, tets, args.search_start, args.accuracy_limit
+    )
+    for run in search:
+        print(run, flush=True)
+    if largest is None:
+        runs.append(
+            Run(**{**asdict(search[-1]), "note": f"fails even at {args.search_start} steps per 1/12 s"})
+        )
+    else:
+        for factor in (1, 2, 4):
+            run = peer_run(semi, largest * factor, args.checkpoints, reference, args.repeats, tets, math.inf)
+            note = "largest stable step" if factor == 1 else f"1/{factor} of the largest stable step"
+            runs.append(Run(**{**asdict(run), "note": note}))
+            print(runs[-1], flush=True)
+    for setting in args.vbd:
+        steps, iterations = (int(part) for part in setting.split(":"))
+        vbd = PeerCantilever(scene, "vbd", iterations)
+        run = peer_run(vbd, steps, args.checkpoints, reference, args.repeats, tets, math.inf)
+        runs.append(Run(**{**asdict(run), "note": "HOBAK neo-Hookean form"}))
+        print(runs[-1], flush=True)
+    return with_ratios(runs), search, info
+
+
+def markdown(
+    runs: list[Run],
+    search: list[Run],
+    references: list[dict[str, float]],
+    args: argparse.Namespace,
+    load: tuple[tuple[float, float, float], tuple[float, float, float]],
+) -> str:
+    """The results as markdown tables."""
+    missing = peer_missing()
+    peer = f"not installed ({missing})" if missing else peer_versions()
+    seconds = args.checkpoints * CHECKPOINT_S
+    lines = [
+        f"Cantilever from rest for {seconds:g} s (`bench_step.build_scene`: E = 1e5 Pa, ν = 0.3, "
+        "ρ = 1000 kg/m³), energysim (float64, Newton–CG) against Warp through `newton` "
+        f"({peer}; float32, CPU). error = largest vertex distance from the reference at t = 1/12, "
+        f"2/12, … s; reference: energysim Newton–CG at tol {REFERENCE_TOL:g} m/s, Richardson-"
+        f"extrapolated from h = 1/{12 * args.reference_steps // 4}, 1/{12 * args.reference_steps // 2} "
+        f"and 1/{12 * args.reference_steps} s. Wall time per simulated second: median of "
+        f"{args.repeats} runs for the peer, one run for energysim. ratio = energysim's wall time / "
+        "the fastest stable peer run whose error is at most energysim's (> 1: energysim is slower); "
+        "ratio VBD: the same against the peer's implicit integrator alone. "
+        f"torch threads {args.threads}, OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'unset')}; "
+        "Warp runs its CPU kernels on one thread. A shared 2-core machine: load "
+        f"average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end; treat times as noisy.",
+        "",
+    ]
+    for ref in references:
+        lines.append(
+            f"- {ref['tets']} tets: the reference's error ≈ {ref['reference_error_m']:.1e} m (from its two "
+            f"extrapolations); {ref['wall_s']:.0f} s to compute. Its three runs are in the table too "
+            "(tol 1e-09): their errors are their distances from the extrapolation."
+        )
+    lines += [
+        "",
+        "| tets | simulator | method | h (s) | wall s / simulated s | error (m) | final error (m) "
+        "| converged | ratio | ratio VBD | status | note |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    for r in runs:
+        lines.append(
+            f"| {r.tets} | {r.simulator} | {r.method} | {r.dt:.3g} | {r.wall_s_per_sim_s:.3g} | "
+            f"{r.error_m:.2e} | {r.final_error_m:.2e} | {r.converged} | {r.ratio:.3g} | {r.ratio_vbd:.3g} | "
+            f"{r.status} | "
+            f"{r.note} |"
+        )
+    for tets in dict.fromkeys(r.tets for r in runs):
+        best = [r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and math.isfinite(r.ratio)]
+        if best:
+            winner = min(best, key=lambda r: r.ratio)
+            lines += [
+                "",
+                f"energysim's best setting by this measure ({tets} tets): {winner.method} at h = "
+                f"{winner.dt:.3g} s, {winner.wall_s_per_sim_s:.3g} s per simulated second with error "
+                f"{winner.error_m:.2e} m, {winner.ratio:.3g}× the peer's time at equal or smaller error.",
+            ]
+        against_vbd = [
+            r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and math.isfinite(r.ratio_vbd)
+        ]
+        if against_vbd:
+            winner = min(against_vbd, key=lambda r: r.ratio_vbd)
+            lines.append(
+                f"Against the peer's implicit integrator (VBD) alone, energysim's best is {winner.method} at "
+                f"h = {winner.dt:.3g} s: {winner.ratio_vbd:.3g}× the fastest VBD run with no smaller error "
+                "(< 1: energysim is faster)."
+            )
+        peer = [r for r in runs if r.tets == tets and r.note == "largest stable step" and r.status == "ok"]
+        if peer:
+            matched = [
+                r
+                for r in runs
+                if r.tets == tets and r.simulator == ENERGYSIM and r.error_m <= peer[0].error_m
+            ]
+            if matched:
+                cheapest = min(matched, key=lambda r: r.wall_s_per_sim_s)
+                lines.append(
+                    f"At the peer's error at its largest stable step ({peer[0].error_m:.2e} m, "
+                    f"{peer[0].wall_s_per_sim_s:.3g} s per simulated second), energysim's cheapest run "
+                    f"with no larger error is {cheapest.method} at h = {cheapest.dt:.3g} s: "
+                    f"{cheapest.wall_s_per_sim_s:.3g} s per simulated second, "
+                    f"{cheapest.wall_s_per_sim_s / peer[0].wall_s_per_sim_s:.3g}× the peer's."
+                )
+            else:
+                lines.append(
+                    "No energysim run reached the peer's error at its largest stable step "
+                    f"({peer[0].error_m:.2e} m)."
+                )
+    if search:
+        lines += [
+            "",
+            f"The peer's largest stable step (semi-implicit): halve the steps per 1/12 s from "
+            f"{args.search_start} until a run blows up or its error exceeds {args.accuracy_limit:g} m, "
+            "then bisect, in this order:",
+            "",
+            "| tets | steps per 1/12 s | h (s) | error (m) | status |",
+            "|---:|---:|---:|---:|---|",
+        ]
+        for r in search:
+            lines.append(
+                f"| {r.tets} | {r.steps_per_checkpoint} | {r.dt:.3g} | {r.error_m:.2e} | {r.status} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(runs: list[Run], path: Path) -> None:
+    """Error against wall time per simulated second, one line per simulator and method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, ax = plt.subplots(figsize=(7, 5))
+    for key in dict.fromkeys((r.tets, r.simulator, r.method) for r in runs):
+        mine = [
+            r
+            for r in runs
+            if (r.tets, r.simulator, r.method) == key
+            and math.isfinite(r.error_m)
+            and math.isfinite(r.wall_s_per_sim_s)
+        ]
+        if mine:
+            mine.sort(key=lambda r: r.dt)
+            ax.loglog(
+                [r.wall_s_per_sim_s for r in mine],
+                [max(r.error_m, 1e-9) for r in mine],
+                "o-" if key[1] == ENERGYSIM else "s--",
+                label=f"{key[1]} {key[2]} ({key[0]} tets)",
+            )
+    ax.set(
+        xlabel="wall time per simulated second (s)",
+        ylabel="largest vertex error (m)",
+        title="Cantilever: work against precision",
+    )
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    figure.tight_layout()
+    temporary = path.with_suffix(".tmp.png")
+    figure.savefig(temporary, dpi=120)
+    temporary.replace(path)
+    plt.close(figure)
+
+
+def check(runs: list[Run]) -> None:
+    """Physical sense: implicit Euler's error shrinks about in proportion to h; the peer's runs at its
+    largest stable step are stable."""
+    for tets in dict.fromkeys(r.tets for r in runs):
+        ours = [r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and "reference" not in r.note]
+        tightest = min(r.tol for r in ours)
+        tight = sorted((r for r in ours if r.tol == tightest), key=lambda r: r.dt)
+        if len(tight) >= 2:
+            order = math.log(tight[-1].error_m / tight[0].error_m) / math.log(tight[-1].dt / tight[0].dt)
+            assert 0.7 < order < 1.3, (
+                f"implicit Euler's observed order is {order:.2f} at {tets} tets, not ≈ 1"
+            )
+        largest = [r for r in runs if r.tets == tets and r.note.startswith("largest stable step")]
+        for r in largest:
+            assert r.status == "ok", f"the peer's largest stable step is {r.status} on its timed run"
+
+
+def main(argv: list[str] | None = None) -> list[Run]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=["1k"], choices=list(SIZES))
+    parser.add_argument("--checkpoints", type=int, default=12, help="simulated time in units of 1/12 s")
+    parser.add_argument(
+        "--dts",
+        nargs="+",
+        type=int,
+        default=list(DEFAULT_DTS),
+        help="energysim steps per 1/12 s (2: h = 1/24 s)",
+    )
+    parser.add_argument("--tols", nargs="+", type=float, default=list(DEFAULT_TOLS), help="m/s")
+    parser.add_argument(
+        "--reference-steps",
+        type=int,
+        default=320,
+        help="steps per 1/12 s of the finest reference run (multiple of 4)",
+    )
+    parser.add_argument(
+        "--search-start", type=int, default=256, help="steps per 1/12 s to start the search at"
+    )
+    parser.add_argument(
+        "--accuracy-limit",
+        type=float,
+        default=0.01,
+        help="error (m) above which a peer run counts as failed in the search",
+    )
+    parser.add_argument(
+        "--vbd",
+        nargs="*",
+        default=["5:10", "5:40", "20:10", "80:10"],
+        help="VBD settings, steps per 1/12 s : iterations per step",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs of each peer setting")
+    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    parser.add_argument("--out", type=Path, default=Path("out/bench_peers"))
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    load_start = os.getloadavg()
+    runs, search, references = [], [], []
+    for size in args.sizes:
+        size_runs, size_search, info = run_size(size, args)
+        runs += size_runs
+        search += size_search
+        references.append(info)
+    table = markdown(runs, search, references, args, (load_start, os.getloadavg()))
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_csv(args.out / "bench_peers.csv", [asdict(r) for r in runs])
+    if search:
+        write_csv(args.out / "bench_peers_search.csv", [asdict(r) for r in search])
+    (args.out / "bench_peers.md.tmp").write_text(table)
+    (args.out / "bench_peers.md.tmp").replace(args.out / "bench_peers.md")
+    if not args.no_plot:
+        plot(runs, args.out / "bench_peers.png")
+    check(runs)
+    return runs
+
+
+if __name__ == "__main__":
+    main()

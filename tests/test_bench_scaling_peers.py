@@ -1,0 +1,160 @@
+"""The scaling and peer benchmarks: their fits and references are right, and their tiny runs make sense."""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+import energysim as es
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+
+import bench_peers  # noqa: E402
+import bench_scaling  # noqa: E402
+
+H = 1 / 60  # the scaling benchmark's step, s
+
+
+def test_loglog_slope_recovers_the_exponent_of_a_power_law():
+    tets = [3750.0, 10290.0, 30000.0, 101250.0]
+    assert bench_scaling.loglog_slope(tets, [3.0 * t**1.1 for t in tets]) == pytest.approx(1.1, abs=1e-12)
+    assert bench_scaling.loglog_slope(tets, [7.0 for _ in tets]) == pytest.approx(0.0, abs=1e-12)
+    # noise of ±10 % alternating in sign about a slope-1 law: the least-squares slope stays near 1
+    noisy = [t * (1.1 if k % 2 else 0.9) for k, t in enumerate(tets)]
+    assert bench_scaling.loglog_slope(tets, noisy) == pytest.approx(1.0, abs=0.1)
+
+
+def test_loglog_slope_skips_failed_points_and_needs_two():
+    tets = [1000.0, 3000.0, 10000.0]
+    assert bench_scaling.loglog_slope(tets, [2.0, math.nan, 20.0]) == pytest.approx(1.0)
+    assert math.isnan(bench_scaling.loglog_slope(tets, [2.0, math.nan, -1.0]))
+    assert math.isnan(bench_scaling.loglog_slope([5.0, 5.0], [1.0, 2.0]))
+
+
+def test_slopes_fit_only_the_sizes_from_the_threshold():
+    def row(tets: int, ms: float, cpu_ms: float, mb: float) -> bench_scaling.Row:
+        return bench_scaling.Row(
+            tets, "newton-cg", 1, 3, ms, cpu_ms, 3, 4, 50, 1e-6, "3/3", 1e-9, mb, mb, "ok"
+        )
+
+    # the smallest mesh is all overhead; from 3k on, wall time ∝ tets^1.2, CPU time ∝ tets^1.1 and
+    # memory ∝ tets
+    rows = [row(810, 500.0, 400.0, 50.0)]
+    rows += [row(t, 1e-3 * t**1.2, 2e-3 * t**1.1, 1e-2 * t) for t in (3750, 10290, 30000)]
+    (fit,) = bench_scaling.slopes(rows, fit_min_tets=2500)
+    assert fit["sizes"] == 3
+    assert fit["time_slope"] == pytest.approx(1.2)
+    assert fit["cpu_time_slope"] == pytest.approx(1.1)
+    assert fit["memory_slope"] == pytest.approx(1.0)
+
+
+def test_richardson_reference_is_exact_for_free_fall():
+    # implicit Euler's free fall is x_n = x_0 − g h² n(n+1)/2: its error −g h t/2 is exactly linear in h,
+    # so the extrapolation must give the exact x_0 − g t²/2
+    mesh = es.TetMesh.box(size=(0.2, 0.2, 0.2), cells=(1, 1, 1))
+    scene = es.Scene(mesh, density=1000.0, gravity=(0.0, -9.81, 0.0))
+    reference, estimate, runs = bench_peers.reference_trajectory(scene, checkpoints=2, finest_steps=8)
+    times = torch.arange(3, dtype=torch.float64) * bench_peers.CHECKPOINT_S
+    exact = (
+        mesh.vertices[None]
+        - torch.tensor([0.0, 9.81, 0.0], dtype=torch.float64) * times[:, None, None] ** 2 / 2
+    )
+    assert float((reference - exact).abs().max()) < 1e-9
+    assert estimate < 1e-9
+    # and each run's error is g h t / 2, largest at the last time t = 2/12 s
+    for run in runs:
+        h = bench_peers.CHECKPOINT_S / run.steps_per_checkpoint
+        error, final = bench_peers.errors(run.positions, reference)
+        assert error == final == pytest.approx(9.81 * h * 2 * bench_peers.CHECKPOINT_S / 2, rel=1e-6)
+
+
+@pytest.mark.heavy
+def test_bench_scaling_tiny_run_is_accurate_and_measures_memory(tmp_path):
+    rows = bench_scaling.main(
+        [
+            "--sizes",
+            "tiny",
+            "--steps",
+            "2",
+            "--warmup",
+            "2",
+            "--threads",
+            "1",
+            "--no-plot",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    by_solver = {row.solver: row for row in rows}
+    assert set(by_solver) == {"newton-cg", "lbfgs"}
+    newton = by_solver["newton-cg"]
+    assert newton.status == "ok" and newton.converged == "2/2"
+    # a residual r (m/s) leaves a position error of about h·r at most
+    assert newton.error_m < 10 * H * bench_scaling.TOL
+    lbfgs = by_solver["lbfgs"]
+    assert (
+        lbfgs.error_m < 10 * H * bench_scaling.TOL
+        if lbfgs.converged == "2/2"
+        else math.isfinite(lbfgs.error_m)
+    )
+    for row in rows:
+        assert row.ms_per_step > 0 and row.cpu_ms_per_step > 0
+        # growth over an idle process that imported the same modules: small for 36 tets, never negative
+        assert -5.0 < row.scene_mb <= row.peak_mb + 1.0 < 500.0
+    with open(tmp_path / "bench_scaling.csv") as handle:
+        assert len(list(csv.DictReader(handle))) == 2
+    assert "time slope" in (tmp_path / "bench_scaling.md").read_text()
+
+
+@pytest.mark.heavy
+def test_bench_peers_runs_energysim_alone_and_says_the_peer_is_missing(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench_peers, "peer_missing", lambda: "ModuleNotFoundError: No module named 'newton'")
+    runs = bench_peers.main(
+        ["--sizes", "tiny", "--checkpoints", "3", "--reference-steps", "40", "--dts", "2", "4"]
+        + ["--tols", "1e-6", "--threads", "1", "--no-plot", "--out", str(tmp_path)]
+    )
+    ours = sorted(
+        (r for r in runs if r.simulator == bench_peers.ENERGYSIM and r.tol == 1e-6), key=lambda r: r.dt
+    )
+    assert len(ours) == 2
+    (note,) = [r for r in runs if r.simulator == bench_peers.PEER]
+    assert note.status == "not installed" and "newton" in note.note
+    assert all(r.converged == f"{r.steps_per_checkpoint * 3}/{r.steps_per_checkpoint * 3}" for r in ours)
+    # implicit Euler is first order: halving h halves the error against the extrapolated reference
+    assert ours[1].error_m / ours[0].error_m == pytest.approx(2.0, rel=0.25)
+    # its free-fall part alone is g h t / 2 at t = 1/4 s; bending adds to it, not orders of magnitude
+    assert 0.2 < ours[1].error_m / (9.81 * ours[1].dt * 0.25 / 2) < 5.0
+    assert "not installed" in (tmp_path / "bench_peers.md").read_text()
+
+
+@pytest.mark.heavy
+def test_bench_peers_finds_a_stable_accurate_step_for_the_peer(tmp_path):
+    pytest.importorskip("newton")
+    runs = bench_peers.main(
+        ["--sizes", "tiny", "--checkpoints", "3", "--reference-steps", "40", "--dts", "2", "--tols", "1e-5"]
+        + [
+            "--search-start",
+            "64",
+            "--vbd",
+            "--repeats",
+            "1",
+            "--threads",
+            "1",
+            "--no-plot",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    peer = {r.note.split(";")[0]: r for r in runs if r.simulator == bench_peers.PEER}
+    largest = peer["largest stable step"]
+    assert largest.status == "ok" and largest.error_m <= 0.01
+    # the semi-implicit (symplectic) Euler integrator is first order too
+    assert largest.error_m / peer["1/4 of the largest stable step"].error_m == pytest.approx(4.0, rel=0.3)
+    with open(tmp_path / "bench_peers_search.csv") as handle:
+        search = list(csv.DictReader(handle))
+    assert search[0]["status"] == "ok" and any(row["status"] != "ok" for row in search)
