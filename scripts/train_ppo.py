@@ -1,0 +1,328 @@
+"""Train a soft creature's controller with PPO (stable-baselines3) on the batched env.
+
+The `--num-envs` creatures are one `CreatureVectorEnv` (one batched solve per env step), seen by SB3
+through `_training.CreatureVecEnv`. The policy (SB3's MlpPolicy, Gaussian, two tanh layers of 64)
+sees the env's observation plus clock features (sin 2πft, cos 2πft) at the creature's suggested gait
+frequency f, and its output is an excitation that the muscles' activation follows with time constant
+`--action-tau` (first-order activation dynamics, see `_training.py`): the gradient method's gaits
+depend on time too, and jumping activations in [−1, 1] at every step cost the solver about three
+times as many Newton iterations (docs/training.md). `--no-clock` and `--action-tau 0` turn these off.
+
+Every `--eval-every` env steps (a multiple of num_envs × n_steps): the deterministic policy is
+evaluated on the fixed evaluation seeds, a row is added to ``curve.csv`` and a checkpoint is written
+(policy, optimizer, global RNG states, counters, the curve so far). The training envs are then reset
+with seeds derived from (seed, evaluation index): the env's state is not saved, and an uninterrupted
+run re-seeds at the same points, so `--resume` continues the very same curve.
+
+Run:  python scripts/train_ppo.py                       # worm, about 15 min on 2 cores
+      python scripts/train_ppo.py --total-steps 256 --eval-every 128 --num-envs 4 --n-steps 32 --out /tmp/p
+      python scripts/train_ppo.py --resume              # continue an interrupted run's curve
+Writes to --out: curve.csv, checkpoint.pt, training.png, rollout/frame_*.vtu + frame.pvd, NAME.gif.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from _training import (
+    CHECKPOINT_NAME,
+    CURVE_NAME,
+    CreatureVecEnv,
+    CurvePoint,
+    Evaluation,
+    Task,
+    check_integer,
+    check_number,
+    evaluate,
+    load_checkpoint,
+    make_vec_env,
+    plot_curves,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+    write_curve,
+    write_policy_outputs,
+)
+from tqdm import tqdm
+
+METHOD = "ppo"
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One PPO training run (the command line's flags; module docstring)."""
+
+    creature: str = "worm"
+    num_envs: int = 8
+    total_steps: int = 3840
+    episode_steps: int = 120
+    n_steps: int = 60
+    batch_size: int = 120
+    n_epochs: int = 10
+    learning_rate: float = 3e-4
+    gamma: float = 0.98
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2
+    ent_coef: float = 0.0
+    log_std_init: float = -1.0
+    hidden: int = 64
+    clock: bool = True
+    action_tau: float = 0.1
+    seed: int = 0
+    eval_every: int = 960
+    eval_episodes: int = 2
+    solver_tol: float = 1e-4
+
+    def __post_init__(self) -> None:
+        Task(self.creature, self.episode_steps, 1, self.solver_tol)  # checks those
+        check_integer(self.num_envs, "num_envs", 1)
+        check_integer(self.total_steps, "total_steps", 0)
+        check_integer(self.n_steps, "n_steps", 1)
+        check_integer(self.batch_size, "batch_size", 2)
+        check_integer(self.n_epochs, "n_epochs", 1)
+        check_number(self.learning_rate, "learning_rate", 0.0, strict=True)
+        for name in ("gamma", "gae_lambda"):
+            value = check_number(getattr(self, name), name, 0.0)
+            if value > 1:
+                raise ValueError(f"{name} must lie in [0, 1], got {value}")
+        check_number(self.clip_range, "clip_range", 0.0, strict=True)
+        check_number(self.ent_coef, "ent_coef", 0.0)
+        check_number(self.log_std_init, "log_std_init")
+        check_integer(self.hidden, "hidden", 1)
+        check_number(self.action_tau, "action_tau", 0.0)
+        check_integer(self.seed, "seed", 0)
+        check_integer(self.eval_every, "eval_every", 1)
+        check_integer(self.eval_episodes, "eval_episodes", 1)
+        rollout = self.num_envs * self.n_steps
+        if self.eval_every % rollout:
+            raise ValueError(
+                f"eval_every must be a multiple of num_envs × n_steps = {rollout} (PPO updates after each "
+                f"{rollout} env steps), got {self.eval_every}"
+            )
+        if self.batch_size > rollout:
+            raise ValueError(
+                f"batch_size must be at most num_envs × n_steps = {rollout}, got {self.batch_size}"
+            )
+
+    @property
+    def task(self) -> Task:
+        return Task(self.creature, self.episode_steps, 1, self.solver_tol)
+
+
+def vec_env(settings: Settings, num_envs: int) -> CreatureVecEnv:
+    """The SB3 view of `num_envs` creatures with the run's clock and activation dynamics."""
+    from energysim.creatures import load_creature
+
+    frequency = load_creature(settings.creature).gait_frequency if settings.clock else None
+    return make_vec_env(settings.task, num_envs, frequency, settings.action_tau)
+
+
+def build_model(settings: Settings, venv: CreatureVecEnv) -> Any:
+    """A fresh SB3 PPO on `venv` with the run's hyperparameters (seeded with `settings.seed`)."""
+    from stable_baselines3 import PPO
+
+    return PPO(
+        "MlpPolicy",
+        venv,
+        n_steps=settings.n_steps,
+        batch_size=min(settings.batch_size, venv.num_envs * settings.n_steps),
+        n_epochs=settings.n_epochs,
+        learning_rate=settings.learning_rate,
+        gamma=settings.gamma,
+        gae_lambda=settings.gae_lambda,
+        clip_range=settings.clip_range,
+        ent_coef=settings.ent_coef,
+        policy_kwargs={"log_std_init": settings.log_std_init, "net_arch": [settings.hidden, settings.hidden]},
+        seed=settings.seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
+def controller(model: Any) -> Any:
+    """The evaluation controller: the policy's mean action."""
+
+    def act(observations: np.ndarray, times: np.ndarray) -> np.ndarray:
+        actions, _ = model.predict(observations, deterministic=True)
+        return actions
+
+    return act
+
+
+def training_seed(seed: int, chunk: int, num_envs: int) -> int:
+    """Seed of the training envs from evaluation `chunk` on (entry i gets this + i): distinct for
+    every (seed, chunk) and far from the evaluation seeds."""
+    return (seed * 100_003 + chunk) * num_envs
+
+
+def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool = True) -> list[CurvePoint]:
+    """Train, evaluating and checkpointing every `eval_every` env steps; returns the curve.
+
+    With `resume`, continue from ``out/checkpoint.pt`` (same settings, except total_steps), so the
+    curve continues exactly as an uninterrupted run's would.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    venv = vec_env(settings, settings.num_envs)
+    evaluation_env = vec_env(settings, settings.eval_episodes)
+    model = build_model(settings, venv)
+    fixed = {key: value for key, value in asdict(settings).items() if key != "total_steps"}
+    curve: list[CurvePoint] = []
+    wall = 0.0
+    if resume:
+        saved = load_checkpoint(out / CHECKPOINT_NAME, {"method": METHOD, **fixed})
+        model.policy.load_state_dict(saved["policy"])
+        model.policy.optimizer.load_state_dict(saved["optimizer"])
+        set_rng_state(saved["rng"])
+        model.num_timesteps, model._n_updates = saved["env_steps"], saved["updates"]
+        curve = [CurvePoint(**row) for row in saved["curve"]]
+        wall = saved["wall_seconds"]
+
+    def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
+        curve.append(
+            CurvePoint.of(
+                METHOD, model.num_timesteps, model._n_updates // settings.n_epochs, wall, result, seconds
+            )
+        )
+        payload = {
+            "settings": {"method": METHOD, **fixed},
+            "policy": model.policy.state_dict(),
+            "optimizer": model.policy.optimizer.state_dict(),
+            "rng": rng_state(),
+            "curve": [asdict(point) for point in curve],
+            "env_steps": model.num_timesteps,
+            "updates": model._n_updates,
+            "wall_seconds": wall,
+        }
+        save_checkpoint(out / CHECKPOINT_NAME, payload)
+        write_curve(out / CURVE_NAME, curve)
+        if progress:
+            tqdm.write(
+                f"{METHOD}: {model.num_timesteps} env steps, {wall:.0f} s: eval return "
+                f"{result.mean_return:+.3f} ± {result.stderr_return:.3f}, distance "
+                f"{100 * result.mean_distance:+.2f} cm"
+            )
+
+    def run_evaluation() -> tuple[Evaluation, float]:
+        start = time.perf_counter()
+        result = evaluate(evaluation_env, controller(model))
+        return result, time.perf_counter() - start
+
+    if not curve:
+        checkpoint_and_log(*run_evaluation())
+    bar = tqdm(
+        total=settings.total_steps,
+        initial=min(model.num_timesteps, settings.total_steps),
+        desc=METHOD,
+        unit="step",
+        disable=not progress,
+        leave=False,
+    )
+
+    class Progress(BaseCallback):
+        def _on_step(self) -> bool:
+            bar.update(settings.num_envs)
+            return True
+
+    while model.num_timesteps < settings.total_steps:
+        chunk = len(curve)  # evaluations so far: the training envs' seeds follow it
+        venv.seed(training_seed(settings.seed, chunk, settings.num_envs))
+        model._last_obs = None  # learn() resets the envs with those seeds
+        steps = min(settings.eval_every, settings.total_steps - model.num_timesteps)
+        steps = -(-steps // (settings.num_envs * settings.n_steps)) * settings.num_envs * settings.n_steps
+        start = time.perf_counter()
+        model.learn(steps, callback=Progress(), reset_num_timesteps=False)
+        wall += time.perf_counter() - start
+        checkpoint_and_log(*run_evaluation())
+    bar.close()
+    return curve
+
+
+def outputs(settings: Settings, out: Path, curve: list[CurvePoint], render: bool = True) -> list[Path]:
+    """The learning-curve PNG and VTK frames (+ GIF) of the trained policy from the checkpoint."""
+    venv = vec_env(settings, 1)
+    model = build_model(settings, venv)
+    model.policy.load_state_dict(torch.load(out / CHECKPOINT_NAME, weights_only=True)["policy"])
+    result = evaluate(venv, controller(model), record=True)
+    written = [plot_curves(curve, out / "training.png", f"{settings.creature}: PPO")]
+    written += write_policy_outputs(venv.env.simulation.scene, result, out, settings.creature, render=render)
+    return written
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    defaults = Settings()
+    add = parser.add_argument
+    add("--creature", default=defaults.creature, help="a shipped creature")
+    add("--num-envs", type=int, default=defaults.num_envs, help="creatures simulated as one batch")
+    add("--total-steps", type=int, default=defaults.total_steps, help="env steps to train for (all entries)")
+    add("--episode-steps", type=int, default=defaults.episode_steps, help="env steps per episode")
+    add("--n-steps", type=int, default=defaults.n_steps, help="env steps per entry between PPO updates")
+    add("--batch-size", type=int, default=defaults.batch_size, help="PPO minibatch size")
+    add("--n-epochs", type=int, default=defaults.n_epochs, help="PPO epochs per update")
+    add("--learning-rate", type=float, default=defaults.learning_rate)
+    add("--gamma", type=float, default=defaults.gamma, help="discount")
+    add("--log-std-init", type=float, default=defaults.log_std_init, help="initial log std of the policy")
+    add("--hidden", type=int, default=defaults.hidden, help="width of the two hidden layers")
+    add("--no-clock", action="store_true", help="no clock features in the observation")
+    add(
+        "--action-tau", type=float, default=defaults.action_tau, help="activation time constant in s; 0: none"
+    )
+    add("--seed", type=int, default=defaults.seed)
+    add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
+    add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
+    add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
+    add("--out", type=Path, default=Path("out") / "train_ppo", help="output folder")
+    add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    add("--threads", type=int, default=1, help="torch intra-op threads")
+    add("--no-render", action="store_true", help="no GIF")
+    add("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    check_integer(args.threads, "threads", 1)
+    settings = Settings(
+        creature=args.creature,
+        num_envs=args.num_envs,
+        total_steps=args.total_steps,
+        episode_steps=args.episode_steps,
+        n_steps=args.n_steps,
+        batch_size=args.batch_size,
+        n_epochs=args.n_epochs,
+        learning_rate=args.learning_rate,
+        gamma=args.gamma,
+        log_std_init=args.log_std_init,
+        hidden=args.hidden,
+        clock=not args.no_clock,
+        action_tau=args.action_tau,
+        seed=args.seed,
+        eval_every=args.eval_every,
+        eval_episodes=args.eval_episodes,
+        solver_tol=args.solver_tol,
+    )
+    torch.set_num_threads(args.threads)
+    curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
+    for path in outputs(settings, args.out, curve, render=not args.no_render):
+        print(f"wrote {path}")
+    first, last = curve[0], curve[-1]
+    print(
+        f"{METHOD}: eval return {first.eval_return:+.3f} -> {last.eval_return:+.3f} "
+        f"(distance {100 * first.eval_distance:+.2f} -> {100 * last.eval_distance:+.2f} cm) in "
+        f"{last.env_steps} env steps, {last.wall_seconds:.0f} s of training"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
