@@ -597,6 +597,36 @@ def plot_curves(
     return path
 
 
+def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method: str) -> None:
+    """The flags both training scripts take; `defaults` is the script's `Settings()`."""
+    add = parser.add_argument
+    add("--creature", default=defaults.creature, help="a shipped creature")
+    add("--num-envs", type=int, default=defaults.num_envs, help="creatures simulated as one batch")
+    add("--total-steps", type=int, default=defaults.total_steps, help="env steps to train for (all entries)")
+    add("--episode-steps", type=int, default=defaults.episode_steps, help="env steps per episode")
+    add("--seed", type=int, default=defaults.seed)
+    add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
+    add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
+    add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
+    add("--out", type=Path, default=Path("out") / f"train_{method}", help="output folder")
+    add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    add("--threads", type=int, default=1, help="torch intra-op threads")
+    add("--no-render", action="store_true", help="no GIF")
+    add("--quiet", action="store_true", help="no progress bar")
+
+
+def print_outcome(method: str, written: Sequence[Path], curve: Sequence[CurvePoint]) -> None:
+    """The files written and the first and last evaluation of a training run."""
+    for path in written:
+        print(f"wrote {path}")
+    first, last = curve[0], curve[-1]
+    print(
+        f"{method}: eval return {first.eval_return:+.3f} -> {last.eval_return:+.3f} "
+        f"(distance {100 * first.eval_distance:+.2f} -> {100 * last.eval_distance:+.2f} cm) in "
+        f"{last.env_steps} env steps, {last.wall_seconds:.0f} s of training"
+    )
+
+
 def random_baseline(task: Task, episodes: int, seed: int = 0) -> Evaluation:
     """The uniform random policy on the evaluation episodes (actions from a generator seeded `seed`)."""
     venv = make_vec_env(task, episodes)

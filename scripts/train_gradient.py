@@ -39,12 +39,14 @@ from _training import (
     CurvePoint,
     Evaluation,
     Task,
+    add_common_arguments,
     check_integer,
     check_number,
     evaluate,
     load_checkpoint,
     make_vec_env,
     plot_curves,
+    print_outcome,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -356,25 +358,13 @@ def make_parser() -> argparse.ArgumentParser:
     )
     defaults = Settings()
     add = parser.add_argument
-    add("--creature", default=defaults.creature, help="a shipped creature")
-    add("--num-envs", type=int, default=defaults.num_envs, help="creatures simulated as one batch")
-    add("--total-steps", type=int, default=defaults.total_steps, help="env steps to train for (all entries)")
+    add_common_arguments(parser, defaults, "gradient")
     add("--window", type=int, default=defaults.window, help="env steps per truncated-backpropagation window")
-    add("--episode-steps", type=int, default=defaults.episode_steps, help="env steps per episode")
     add("--learning-rate", type=float, default=defaults.learning_rate, help="Adam's step size")
     add("--frequency", type=float, default=None, help="gait frequency in Hz (default: the creature's)")
     add("--learn-frequency", action="store_true", help="train the frequency too")
     add("--init-amplitude", type=float, default=defaults.init_amplitude, help="initial gait amplitude")
     add("--hidden", type=int, default=defaults.hidden, help="MLP width on the observation; 0: none")
-    add("--seed", type=int, default=defaults.seed)
-    add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
-    add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
-    add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
-    add("--out", type=Path, default=Path("out") / "train_gradient", help="output folder")
-    add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    add("--threads", type=int, default=1, help="torch intra-op threads")
-    add("--no-render", action="store_true", help="no GIF")
-    add("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -399,14 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
-    for path in outputs(settings, args.out, curve, render=not args.no_render):
-        print(f"wrote {path}")
-    first, last = curve[0], curve[-1]
-    print(
-        f"{METHOD}: eval return {first.eval_return:+.3f} -> {last.eval_return:+.3f} "
-        f"(distance {100 * first.eval_distance:+.2f} -> {100 * last.eval_distance:+.2f} cm) in "
-        f"{last.env_steps} env steps, {last.wall_seconds:.0f} s of training"
-    )
+    print_outcome(METHOD, outputs(settings, args.out, curve, render=not args.no_render), curve)
     return 0
 
 

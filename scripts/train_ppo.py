@@ -38,12 +38,14 @@ from _training import (
     CurvePoint,
     Evaluation,
     Task,
+    add_common_arguments,
     check_integer,
     check_number,
     evaluate,
     load_checkpoint,
     make_vec_env,
     plot_curves,
+    print_outcome,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -262,10 +264,7 @@ def make_parser() -> argparse.ArgumentParser:
     )
     defaults = Settings()
     add = parser.add_argument
-    add("--creature", default=defaults.creature, help="a shipped creature")
-    add("--num-envs", type=int, default=defaults.num_envs, help="creatures simulated as one batch")
-    add("--total-steps", type=int, default=defaults.total_steps, help="env steps to train for (all entries)")
-    add("--episode-steps", type=int, default=defaults.episode_steps, help="env steps per episode")
+    add_common_arguments(parser, defaults, "ppo")
     add("--n-steps", type=int, default=defaults.n_steps, help="env steps per entry between PPO updates")
     add("--batch-size", type=int, default=defaults.batch_size, help="PPO minibatch size")
     add("--n-epochs", type=int, default=defaults.n_epochs, help="PPO epochs per update")
@@ -277,15 +276,6 @@ def make_parser() -> argparse.ArgumentParser:
     add(
         "--action-tau", type=float, default=defaults.action_tau, help="activation time constant in s; 0: none"
     )
-    add("--seed", type=int, default=defaults.seed)
-    add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
-    add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
-    add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
-    add("--out", type=Path, default=Path("out") / "train_ppo", help="output folder")
-    add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    add("--threads", type=int, default=1, help="torch intra-op threads")
-    add("--no-render", action="store_true", help="no GIF")
-    add("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -313,14 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
-    for path in outputs(settings, args.out, curve, render=not args.no_render):
-        print(f"wrote {path}")
-    first, last = curve[0], curve[-1]
-    print(
-        f"{METHOD}: eval return {first.eval_return:+.3f} -> {last.eval_return:+.3f} "
-        f"(distance {100 * first.eval_distance:+.2f} -> {100 * last.eval_distance:+.2f} cm) in "
-        f"{last.env_steps} env steps, {last.wall_seconds:.0f} s of training"
-    )
+    print_outcome(METHOD, outputs(settings, args.out, curve, render=not args.no_render), curve)
     return 0
 
 
