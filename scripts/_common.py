@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import csv
 import math
 import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -244,3 +245,17 @@ def script_main(
         return 1
     print("  check passed")
     return 0
+
+
+def write_table_files(out: Path, name: str, rows: list[object], table: str) -> None:
+    """`out/<name>.csv` (one line per dataclass row) and `out/<name>.md` (`table`), each written whole
+    (to a temporary file, then renamed) or not at all."""
+    out.mkdir(parents=True, exist_ok=True)
+    staged = out / f"{name}.csv.tmp"
+    with open(staged, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
+        writer.writeheader()
+        writer.writerows(asdict(row) for row in rows)
+    staged.replace(out / f"{name}.csv")
+    (out / f"{name}.md.tmp").write_text(table)
+    (out / f"{name}.md.tmp").replace(out / f"{name}.md")

@@ -14,14 +14,14 @@ Writes: <out>/bench_creatures.csv, <out>/bench_creatures.md (the table) and <out
 from __future__ import annotations
 
 import argparse
-import csv
 import importlib
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from _common import write_table_files
 from _locomotion import body_length, build_scene, default_gait, run
 
 from energysim.cpu import configure as configure_cpu
@@ -148,14 +148,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     rows = [bench(name, args.seconds, args.tol) for name in args.creatures]
     table = markdown(rows, args.seconds)
     print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "bench_creatures.csv.tmp", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
-        writer.writeheader()
-        writer.writerows(asdict(r) for r in rows)
-    (args.out / "bench_creatures.csv.tmp").replace(args.out / "bench_creatures.csv")
-    (args.out / "bench_creatures.md.tmp").write_text(table)
-    (args.out / "bench_creatures.md.tmp").replace(args.out / "bench_creatures.md")
+    write_table_files(args.out, "bench_creatures", rows, table)
     if not args.no_plot:
         plot(rows, args.out / "bench_creatures.png")
     return rows

@@ -18,16 +18,16 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import csv
 import io
 import pstats
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from _common import write_table_files
 
 from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES
@@ -185,14 +185,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     ]
     table = markdown(rows, args.threads)
     print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "bench_env.csv.tmp", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
-        writer.writeheader()
-        writer.writerows(asdict(r) for r in rows)
-    (args.out / "bench_env.csv.tmp").replace(args.out / "bench_env.csv")
-    (args.out / "bench_env.md.tmp").write_text(table)
-    (args.out / "bench_env.md.tmp").replace(args.out / "bench_env.md")
+    write_table_files(args.out, "bench_env", rows, table)
     if not args.no_plot:
         plot(rows, args.out / "bench_env.png")
     return rows
