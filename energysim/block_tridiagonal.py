@@ -281,3 +281,24 @@ def to_levels(v: Tensor, layout: LevelLayout) -> Tensor:
 def from_levels(u: Tensor, layout: LevelLayout, like: Tensor) -> Tensor:
     """`[B, L, S]` in level order → shape of `like`, `[B, n, d]`."""
     return u.reshape(u.shape[0], -1)[:, layout.dof_slots].reshape(like.shape)
+
+
+# the cost model for choosing this path over a dense Cholesky (B·N³/3 flops), in units of one dense
+# flop: about LEVELS_WORK·B·L·S³ plus a fixed LEVELS_OVERHEAD per level (its Python loop issues a few
+# small batched kernels per level whatever B is). Measured on the worm (N = 432, L = 18, S = 27).
+LEVELS_WORK = 4.0
+LEVELS_OVERHEAD = 2.5e6
+
+
+def prefer_levels(layout: LevelLayout, batch: int, num_dofs: int) -> bool:
+    """Whether the block-tridiagonal factorisation is estimated cheaper than a dense one (N = `num_dofs`)."""
+    dense_cost = batch * num_dofs**3 / 3
+    return LEVELS_WORK * batch * layout.cost + LEVELS_OVERHEAD * layout.num_levels < dense_cost
+
+
+def level_solve(diagonal: Tensor, lower: Tensor, layout: LevelLayout, rhs: Tensor) -> tuple[Tensor, Tensor]:
+    """Solve H u = rhs (`[B, n, d]`) from H's level blocks; returns u and which entries were positive
+    definite `[B]` (elsewhere u is finite but meaningless)."""
+    factor = block_cholesky(diagonal, lower)
+    solution = from_levels(block_cholesky_solve(factor, to_levels(rhs, layout)), layout, rhs)
+    return solution, factor.positive_definite

@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from energysim.block_tridiagonal import level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.energies.base import EnergyTerm
 from energysim.energies.inertia import Inertia
@@ -83,19 +84,30 @@ def conjugate_gradient(
 def solve_adjoint(
     operator: HessianOperator, rhs: Tensor, x: Tensor, rtol: float, direct_max_dofs: int
 ) -> Tensor:
-    """u = H⁻¹ rhs at the step's solution: dense Cholesky for small systems, else block-Jacobi CG.
+    """u = H⁻¹ rhs at the step's solution: Cholesky for small systems (block-tridiagonal over vertex
+    levels where that is cheaper, as for batches, see `NewtonCG.direct`), else block-Jacobi CG.
 
     Raises:
         GradientError: H is not positive definite.
     """
-    dense = operator.dense(x) if x.shape[1] * x.shape[2] <= direct_max_dofs else None
+    not_definite = (
+        "the step's Hessian is not positive definite at its solution, so x* is not a strict "
+        "minimum and the implicit gradient does not exist"
+    )
+    batch, n, dim = x.shape
+    small = n * dim <= direct_max_dofs
+    if small and operator.blocks and prefer_levels(operator.level_layout(x), batch, n * dim):
+        levels = operator.level_blocks(x)
+        if levels is not None:
+            solution, positive_definite = level_solve(*levels, rhs)
+            if not bool(positive_definite.all()):
+                raise GradientError(not_definite)
+            return solution
+    dense = operator.dense(x) if small else None
     if dense is not None:
         factor, info = torch.linalg.cholesky_ex(dense)
         if bool((info != 0).any()):
-            raise GradientError(
-                "the step's Hessian is not positive definite at its solution, so x* is not a strict "
-                "minimum and the implicit gradient does not exist"
-            )
+            raise GradientError(not_definite)
         return torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
     inverse = block_jacobi_preconditioner(operator, x)
     solution, _ = conjugate_gradient(operator, rhs, lambda r: (inverse @ r[..., None])[..., 0], rtol=rtol)

@@ -11,6 +11,7 @@ from energysim.block_tridiagonal import (
     block_cholesky,
     block_cholesky_solve,
     from_levels,
+    prefer_levels,
     to_levels,
     vertex_levels,
 )
@@ -143,3 +144,31 @@ def test_auto_picks_dense_for_one_worm_and_levels_for_a_batch() -> None:
 def test_unknown_direct_method_is_refused() -> None:
     with pytest.raises(ValueError, match="direct"):
         es.NewtonCG(direct="sparse")
+
+
+def test_batched_backward_through_the_level_solve_equals_single_entries() -> None:
+    # B = 3 worms take the block-tridiagonal adjoint solve, one worm the dense one: the gradients of
+    # the same loss with respect to the state and the action must agree entry by entry
+    scene, state, action = _worm_batch([0.0, 1e-4, 2e-4])
+    scene.solver = es.NewtonCG(tol=1e-9)
+    objective, x = _objective(scene, state, action)
+    layout = objective.hessian(x).level_layout(x)
+    assert prefer_levels(layout, 3, x.shape[1] * x.shape[2])
+    assert not prefer_levels(layout, 1, x.shape[1] * x.shape[2])
+    weights = torch.randn(state.shape, generator=torch.Generator().manual_seed(5), dtype=state.dtype)
+
+    def gradients(
+        start: torch.Tensor, act: torch.Tensor, weight: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        start = start.clone().requires_grad_(True)
+        act = act.clone().requires_grad_(True)
+        (es.timestep(scene, start, act) * weight).sum().backward()
+        return start.grad, act.grad
+
+    batched_state, batched_action = gradients(state, action, weights)
+    for i in range(3):
+        single_state, single_action = gradients(state[i : i + 1], action[i : i + 1], weights[i : i + 1])
+        scale = float(single_state.abs().max())
+        assert float((batched_state[i] - single_state[0]).abs().max()) < 1e-7 * scale
+        action_scale = float(single_action.abs().max())
+        assert float((batched_action[i] - single_action[0]).abs().max()) < 1e-7 * action_scale

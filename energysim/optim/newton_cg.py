@@ -15,16 +15,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.block_tridiagonal import block_cholesky, block_cholesky_solve, from_levels, to_levels
+from energysim.block_tridiagonal import level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
 from energysim.optim.base import Solver, SolverResult, line_step
-
-# the cost model of `NewtonCG(direct="auto")`, in units of one dense-Cholesky flop (B·N³/3 for the
-# dense path): the block path costs about WORK·B·L·S³ plus a fixed OVERHEAD per level (its Python
-# loop issues a handful of small batched kernels per level whatever B is). Measured on the worm.
-DIRECT_LEVELS_WORK = 4.0
-DIRECT_LEVELS_OVERHEAD = 2.5e6
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -71,7 +65,7 @@ class NewtonCG(Solver):
             entry (N = n·d), ≈ B·N³/3 flops. "levels": block-tridiagonal Cholesky over breadth-first
             vertex levels (`energysim.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
-            picks the cheaper by that estimate (`DIRECT_LEVELS_WORK`, `DIRECT_LEVELS_OVERHEAD`,
+            picks the cheaper by that estimate (`energysim.block_tridiagonal.prefer_levels`,
             measured on the worm, N = 432, L = 18, S = 27): dense for one worm, levels for batches
             of them (≈ 6× faster per Newton direction at B = 16).
         project_hessian: project every element block to positive semidefinite (projected Newton,
@@ -182,13 +176,8 @@ class NewtonCG(Solver):
             levels = operator.level_blocks(x)
             if levels is None:
                 return torch.zeros_like(rhs), none
-            diagonal, lower, layout = levels
-            factor = block_cholesky(diagonal, lower)
-            solved = wanted & factor.positive_definite
-            if not solved.any():
-                return torch.zeros_like(rhs), none
-            # failed entries hold identity placeholders, so their (discarded) solves stay finite
-            direction = from_levels(block_cholesky_solve(factor, to_levels(rhs, layout)), layout, rhs)
+            direction, positive_definite = level_solve(*levels, rhs)
+            solved = wanted & positive_definite
             return direction * solved[:, None, None], solved
         dense = operator.dense(x)
         if dense is None:
@@ -211,10 +200,7 @@ class NewtonCG(Solver):
         if not operator.blocks:
             return "dense"  # no element couples vertices: nothing to order by levels
         batch, n, dim = x.shape
-        layout = operator.level_layout(x)
-        dense_cost = batch * (n * dim) ** 3 / 3
-        levels_cost = DIRECT_LEVELS_WORK * batch * layout.cost + DIRECT_LEVELS_OVERHEAD * layout.num_levels
-        return "levels" if levels_cost < dense_cost else "dense"
+        return "levels" if prefer_levels(operator.level_layout(x), batch, n * dim) else "dense"
 
     def _preconditioner(
         self, operator: HessianOperator, x: Tensor, objective: Objective
