@@ -247,15 +247,30 @@ def script_main(
     return 0
 
 
+def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
+    """`rows` as CSV at `path`, written to a temporary file first."""
+    temporary = path.with_suffix(".csv.tmp")
+    with open(temporary, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    temporary.replace(path)
+
+
 def write_table_files(out: Path, name: str, rows: list[object], table: str) -> None:
     """`out/<name>.csv` (one line per dataclass row) and `out/<name>.md` (`table`), each written whole
     (to a temporary file, then renamed) or not at all."""
     out.mkdir(parents=True, exist_ok=True)
-    staged = out / f"{name}.csv.tmp"
-    with open(staged, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(asdict(rows[0])))
-        writer.writeheader()
-        writer.writerows(asdict(row) for row in rows)
-    staged.replace(out / f"{name}.csv")
+    write_csv(out / f"{name}.csv", [asdict(row) for row in rows])
     (out / f"{name}.md.tmp").write_text(table)
     (out / f"{name}.md.tmp").replace(out / f"{name}.md")
+
+
+def save_figure(figure: object, path: Path) -> None:
+    """Save a matplotlib figure as PNG at `path` (to a temporary file, then renamed) and close it."""
+    import matplotlib.pyplot as plt
+
+    temporary = path.with_suffix(".tmp.png")
+    figure.savefig(temporary, dpi=120)
+    temporary.replace(path)
+    plt.close(figure)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from _common import write_table_files
+from _common import save_figure, write_table_files
 from _locomotion import body_length, build_scene, default_gait, run
 
 from energysim.cpu import configure as configure_cpu
@@ -127,10 +127,7 @@ def plot(rows: list[Row], path: Path) -> None:
     axes[1].set(xlabel="|distance travelled| (m)", ylabel="final centre-of-mass error (m)", title="Error")
     axes[1].grid(True, which="both", alpha=0.3)
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def main(argv: list[str] | None = None) -> list[Row]:

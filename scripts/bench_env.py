@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import write_table_files
+from _common import save_figure, write_table_files
 
 from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES
@@ -156,10 +156,7 @@ def plot(rows: list[Row], path: Path) -> None:
     axis.grid(True, which="both", alpha=0.3)
     axis.legend()
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def main(argv: list[str] | None = None) -> list[Row]:

@@ -69,7 +69,8 @@ import energysim as es
 from energysim.fem.materials import lame_parameters, smith_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_step import SIZES, build_scene, write_csv  # noqa: E402
+from _common import save_figure, write_csv  # noqa: E402
+from bench_step import SIZES, build_scene  # noqa: E402
 
 CHECKPOINT_S = 1.0 / 12.0  # every step size below divides it
 YOUNGS_MODULUS, POISSONS_RATIO, DENSITY, GRAVITY = 1e5, 0.3, 1000.0, 9.81  # bench_step's cantilever
@@ -590,10 +591,7 @@ def plot(runs: list[Run], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def check(runs: list[Run]) -> None:

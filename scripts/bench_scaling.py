@@ -48,7 +48,8 @@ import torch
 import energysim as es
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_step import REFERENCE_TOL, build_scene, timed_steps, write_csv  # noqa: E402
+from _common import save_figure, write_csv  # noqa: E402
+from bench_step import REFERENCE_TOL, build_scene, timed_steps  # noqa: E402
 from bench_step import SIZES as STEP_SIZES  # noqa: E402
 
 # cells along (x, y, z), 6 tets per cell: bench_step's meshes and the ones between them
@@ -443,10 +444,7 @@ def plot(rows: list[Row], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def check(rows: list[Row]) -> None:

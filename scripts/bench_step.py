@@ -26,7 +26,6 @@ bench_step_landing_obstacles.csv and bench_step_landing_trace.csv for the landin
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import time
@@ -37,6 +36,7 @@ from functools import partial
 from pathlib import Path
 
 import torch
+from _common import save_figure, write_csv
 
 import energysim as es
 from energysim.contact import LaggedFriction
@@ -222,10 +222,7 @@ def plot(rows: list[Row], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 # --- the landing: contact and friction ------------------------------------------------------
@@ -654,20 +651,7 @@ def landing_plot(rows: list[LandingRow], trace: list[dict[str, object]], path: P
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     figure.tight_layout()
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)
-
-
-def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
-    """`rows` as CSV at `path`, written to a temporary file first."""
-    temporary = path.with_suffix(".csv.tmp")
-    with open(temporary, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    temporary.replace(path)
+    save_figure(figure, path)
 
 
 def cantilever_main(args: argparse.Namespace) -> list[Row]:

@@ -58,7 +58,7 @@ import bench_step
 import cantilever
 import torch
 import walk_quadruped
-from _common import simulate
+from _common import save_figure, simulate
 from torch import Tensor
 from tqdm import tqdm
 
@@ -712,12 +712,6 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
     return "\n".join(lines) + "\n"
 
 
-def _save(figure: object, path: Path) -> None:
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-
-
 def _pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     """The points no other point beats in both wall time and error, by wall time."""
     front: list[tuple[float, float]] = []
@@ -808,8 +802,7 @@ def plot_work_precision(rows: list[Run], optimizers: list[str], tols: list[float
     figure.legend(handles=handles, fontsize=8, loc="lower center", ncol=min(len(handles), 5))
     figure.suptitle("Work precision; a line joins the runs of one optimizer that no faster run beats")
     figure.tight_layout(rect=(0, 0.1, 1, 1))
-    _save(figure, path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def plot_error_sources(rows: list[Run], optimizers: list[str], args: argparse.Namespace, path: Path) -> None:
@@ -890,8 +883,7 @@ def plot_error_sources(rows: list[Run], optimizers: list[str], args: argparse.Na
         bottom.grid(True, which="both", alpha=0.3)
         bottom.legend(fontsize=7)
     figure.tight_layout()
-    _save(figure, path)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 # --- command line -----------------------------------------------------------------------------------

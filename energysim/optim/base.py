@@ -146,6 +146,7 @@ class LineStep:
         x: the new positions `[B, n, d]`, in m.
         energy: E there `[B]`, in J.
         gradient: ∇E there `[B, n, d]`, in N.
+        residual: the velocity residual there `[B]`, in m/s.
         unjudged: entries taken whole because the energy could not judge the step `[B]`.
     """
 
@@ -153,6 +154,7 @@ class LineStep:
     x: Tensor
     energy: Tensor
     gradient: Tensor
+    residual: Tensor
     unjudged: Tensor
 
 
@@ -181,13 +183,15 @@ def line_step(
     decrease = _sufficient_decrease(energy, trial_energy, initial, slope, rounding, sufficient_decrease)
     accepted = unjudged | decrease
     if bool(accepted.all()):
-        return LineStep(initial, trial_x, trial_energy, trial_gradient, unjudged)
+        return LineStep(
+            initial, trial_x, trial_energy, trial_gradient, objective.residual(trial_gradient), unjudged
+        )
     step, _, unjudged = backtracking_line_search(
         objective, x, energy, gradient, direction, initial, sufficient_decrease=sufficient_decrease
     )
     x_new = x + step[:, None, None] * direction
     new_energy, new_gradient = objective.energy_and_gradient(x_new)
-    return LineStep(step, x_new, new_energy, new_gradient, unjudged)
+    return LineStep(step, x_new, new_energy, new_gradient, objective.residual(new_gradient), unjudged)
 
 
 def backtracking_line_search(

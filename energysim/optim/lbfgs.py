@@ -74,18 +74,15 @@ class LBFGS(Solver):
             downhill = _dot(gradient, direction) < 0
             direction = torch.where(downhill[:, None, None], direction, -inverse_diagonal * gradient)
             search = line_step(objective, x, energy, gradient, direction)
-            step, x_new, unjudged = search.step, search.x, search.unjudged
-            failed = active & (step == 0)
+            failed = active & (search.step == 0)
             stalled = stalled | (failed & restarted)
             restarted = failed
-            new_energy, new_gradient = search.energy, search.gradient
-            new_residual = objective.residual(new_gradient)
             # as in Newton–CG: a step the energy cannot judge stands only if the residual fell
-            worse = active & unjudged & (new_residual >= residual)
+            worse = active & search.unjudged & (search.residual >= residual)
             stalled = stalled | worse
             moved = active & ~failed & ~worse
-            s = (x_new - x) * moved[:, None, None]
-            y = (new_gradient - gradient) * moved[:, None, None]
+            s = (search.x - x) * moved[:, None, None]
+            y = (search.gradient - gradient) * moved[:, None, None]
             curvature = _dot(s, y)
             usable = moved & (curvature > 1e-12 * _dot(s, s).sqrt() * _dot(y, y).sqrt())
             if usable.any():
@@ -99,10 +96,10 @@ class LBFGS(Solver):
                 history = [(s_, y_, torch.where(failed, 0.0, rho)) for s_, y_, rho in history]
                 scale = torch.where(failed, torch.ones_like(scale), scale)
             keep = ~moved[:, None, None]
-            x = torch.where(keep, x, x_new)
-            gradient = torch.where(keep, gradient, new_gradient)
-            energy = torch.where(moved, new_energy, energy)
-            residual = torch.where(moved, new_residual, residual)
+            x = torch.where(keep, x, search.x)
+            gradient = torch.where(keep, gradient, search.gradient)
+            energy = torch.where(moved, search.energy, energy)
+            residual = torch.where(moved, search.residual, residual)
         return self.finish(objective, x, residual, iterations, 0)
 
     @staticmethod

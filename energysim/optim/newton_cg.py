@@ -124,21 +124,18 @@ class NewtonCG(Solver):
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
             search = line_step(objective, x, energy, gradient, direction)
-            step, x_new, unjudged = search.step, search.x, search.unjudged
-            failed = active & (step == 0)
+            failed = active & (search.step == 0)
             stalled = stalled | (failed & steepest)
             steepest = failed
-            new_energy, new_gradient = search.energy, search.gradient
-            new_residual = objective.residual(new_gradient)
             # a step too small for the energy to judge stands only if the residual fell; if not,
             # this is as far as the precision goes: keep the better point and stop that entry
-            worse = active & unjudged & (new_residual >= residual)
+            worse = active & search.unjudged & (search.residual >= residual)
             stalled = stalled | worse
             keep = worse[:, None, None]
-            x = torch.where(keep, x, x_new)
-            gradient = torch.where(keep, gradient, new_gradient)
-            energy = torch.where(worse, energy, new_energy)
-            residual = torch.where(worse, residual, new_residual)
+            x = torch.where(keep, x, search.x)
+            gradient = torch.where(keep, gradient, search.gradient)
+            energy = torch.where(worse, energy, search.energy)
+            residual = torch.where(worse, residual, search.residual)
         return self.finish(objective, x, residual, iterations, hvps)
 
     def _newton_direction(
