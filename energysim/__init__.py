@@ -21,7 +21,7 @@ from energysim.mesh import SimplexMesh, TetMesh, TriMesh, load_mesh
 from energysim.objective import Objective
 from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
 from energysim.rollout import rollout
-from energysim.scene import Scene
+from energysim.scene import INTEGRATORS, Scene
 from energysim.step import StepResult, solve_static, step, timestep
 from energysim.viewer import Viewer
 
@@ -44,6 +44,7 @@ __all__ = [
     "FibreMuscles",
     "EnergyTerm",
     "Gravity",
+    "INTEGRATORS",
     "Inertia",
     "NeoHookean",
     "NewtonCG",

@@ -13,6 +13,8 @@ from energysim.energies.gravity import Gravity
 from energysim.mesh import SimplexMesh
 from energysim.optim import NewtonCG, Solver
 
+INTEGRATORS = ("implicit_euler", "tr_bdf2")
+
 
 class Scene(nn.Module):
     """The static model of a simulation; states are plain tensors kept outside it.
@@ -24,6 +26,8 @@ class Scene(nn.Module):
         gravity: acceleration of gravity, d components, in m/s²; None: no gravity term at all.
         vertex_mass: optional lumped masses, shape `[n]`, in kg, instead of density × rest volume.
         solver: the optimizer for each step; default `NewtonCG(tol=1e-5)`.
+        integrator: "implicit_euler" (one solve per step, first order, damps oscillations) or
+            "tr_bdf2" (two solves per step, second order, keeps slow oscillations): see `step`.
 
     Example:
         >>> scene = Scene(TetMesh.box(size=(1, .2, .2), cells=(10, 2, 2)), dt=1/60)
@@ -38,12 +42,14 @@ class Scene(nn.Module):
         gravity: Sequence[float] | Tensor | None = (0.0, -9.81, 0.0),
         vertex_mass: Tensor | None = None,
         solver: Solver | None = None,
+        integrator: str = "implicit_euler",
     ) -> None:
         super().__init__()
         if not isinstance(mesh, SimplexMesh):
             raise TypeError(f"mesh must be a TetMesh or TriMesh, got {type(mesh).__name__}")
         self.mesh = mesh
         self.dt = dt
+        self.integrator = integrator
         if vertex_mass is None:
             if not (math.isfinite(density) and density > 0):
                 raise ValueError(f"density must be finite and > 0 kg/m^3, got {density}")
@@ -72,6 +78,17 @@ class Scene(nn.Module):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"dt must be a finite number > 0 s, got {value!r}")
         self._dt = float(value)
+
+    @property
+    def integrator(self) -> str:
+        """How a step advances the state: one of `INTEGRATORS`."""
+        return self._integrator
+
+    @integrator.setter
+    def integrator(self, value: str) -> None:
+        if value not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {value!r}")
+        self._integrator = value
 
     @property
     def dim(self) -> int:
