@@ -77,15 +77,21 @@ class ElementEnergy(EnergyTerm):
         return self.element_energy(gather_vertices(x, self.element_vertices), action).sum(dim=-1)
 
     def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
-        """Uses the subclass's `element_gradient(element_positions, action) -> [B, m, k, d]` (N) if any."""
+        """Uses the subclass's `element_energy_and_gradient(element_positions, action)` if any (one pass
+        for both), else its `element_gradient(element_positions, action) -> [B, m, k, d]` (N)."""
+        fused = getattr(self, "element_energy_and_gradient", None)
         kernel = getattr(self, "element_gradient", None)
-        if kernel is None:
+        if fused is None and kernel is None:
             return None
         with torch.no_grad():
             element_positions = x[:, self.element_vertices]
-            energy = self.element_energy(element_positions, action).sum(dim=-1)
-            gradient = scatter_vertices(kernel(element_positions, action), self.element_vertices, x.shape[1])
-        return energy, gradient
+            if fused is not None:
+                energies, gradients = fused(element_positions, action)
+            else:
+                energies = self.element_energy(element_positions, action)
+                gradients = kernel(element_positions, action)
+            gradient = scatter_vertices(gradients, self.element_vertices, x.shape[1])
+        return energies.sum(dim=-1), gradient
 
 
 class _GatherVertices(torch.autograd.Function):

@@ -188,6 +188,17 @@ class FibreMuscles(ElementEnergy):
         )
         return self.fibre_weights[..., None] * (tension[..., None] * vector)[..., None, :]
 
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """`element_energy` and `element_gradient` from one fibre vector and one target stretch."""
+        vector, stretch = fibre_vector(element_positions, self.fibre_weights)
+        excess = stretch - self.target_stretch(action)
+        stiffness = self.rest_volume * self.element_stiffness()
+        tension = stiffness * excess / stretch
+        gradient = self.fibre_weights[..., None] * (tension[..., None] * vector)[..., None, :]
+        return 0.5 * stiffness * excess**2, gradient
+
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact Hessian blocks `[B, m_active, (d+1)d, (d+1)d]`, N/m (see `fibre_hessian_blocks`)."""
         vector, stretch = fibre_vector(element_positions, self.fibre_weights)

@@ -10,6 +10,7 @@ from energysim.fem.kinematics import deformation_gradient, shape_gradients, simp
 from energysim.fem.materials import (
     lame_parameters,
     stable_neo_hookean_density,
+    stable_neo_hookean_density_and_stress,
     stable_neo_hookean_stress,
     stable_neo_hookean_stress_hessian,
 )
@@ -72,6 +73,17 @@ class NeoHookean(ElementEnergy):
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
         stress = stable_neo_hookean_stress(F, mu, lam) * self.rest_volume[:, None, None]
         return self.shape_gradient @ stress.transpose(-1, -2)
+
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """`element_energy` and `element_gradient` from one deformation gradient and one set of
+        invariants, shapes `[B, m]` (J) and `[B, m, d+1, d]` (N)."""
+        mu, lam = self.lame()
+        F = deformation_gradient(element_positions, self.rest_edge_inverse)
+        density, stress = stable_neo_hookean_density_and_stress(F, mu, lam)
+        stress = stress * self.rest_volume[:, None, None]
+        return self.rest_volume * density, self.shape_gradient @ stress.transpose(-1, -2)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.

@@ -137,6 +137,30 @@ def stable_neo_hookean_stress(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     return along_f[..., None, None] * F + along_cofactor[..., None, None] * cofactor
 
 
+def stable_neo_hookean_density_and_stress(F: Tensor, mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
+    """`stable_neo_hookean_density` and `stable_neo_hookean_stress` in one pass over the invariants,
+    which both need: the solvers ask for energy and gradient together at every iterate.
+
+    Args:
+        F: shape `[..., d, d]`; mu, lam: Pa, broadcastable to `[...]`.
+
+    Returns:
+        ψ(F) `[...]` in J/m³ and P(F) `[..., d, d]` in Pa.
+    """
+    mu_smith, lam_smith, _ = smith_parameters(mu, lam)
+    stretch_excess, volume_excess, second_order = _invariant_excesses(F)
+    y = 0.25 * stretch_excess
+    density = (
+        0.75 * mu_smith * second_order
+        + 0.5 * lam_smith * volume_excess**2
+        + 0.5 * mu_smith * _y_minus_log1p(y)
+    )
+    along_f = 0.75 * mu_smith + 0.25 * mu_smith * y / (1.0 + y)
+    along_cofactor = lam_smith * volume_excess - 0.75 * mu_smith
+    stress = along_f[..., None, None] * F + along_cofactor[..., None, None] * cofactor_matrix(F)
+    return density, stress
+
+
 def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     """∂²ψ/∂F² of `stable_neo_hookean_density`, the exact (unprojected) tangent stiffness.
 
