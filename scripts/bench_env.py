@@ -5,12 +5,15 @@ otherwise) is reset with seed 0 and stepped with uniformly random actions (the a
 with 0): `--warmup` steps untimed, then `--steps` timed `step` calls. Env steps per second are
 B / (median wall time of one call); the spread beside it is the interquartile range of the calls.
 Random activations switch every muscle at every step, which is harder for the solver than a
-gait: the Newton iterations per step are in the table. Runs use `--threads` intra-op threads
-(default 1, best for meshes this small on a shared machine).
+gait: the Newton iterations per step are in the table. `--activation-time-constant` τ (s) turns on
+the env's first-order activation dynamics, which low-pass the random commands before the muscles see
+them. Runs use `--threads` intra-op threads (default 1, best for meshes this small on a shared
+machine).
 
 Run:  python scripts/bench_env.py                                    # worm and quadruped, B = 1, 16, 64
       python scripts/bench_env.py --creatures worm --batch-sizes 1 4 --steps 3 --no-plot   # quick
       python scripts/bench_env.py --profile                          # also where the time goes
+      python scripts/bench_env.py --activation-time-constant 0.05    # muscles with τ = 50 ms
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
 """
 
@@ -52,6 +55,7 @@ class Row:
     env_steps_per_second_high: float
     newton_iterations: float
     failures: int
+    activation_time_constant: float | None = None
 
 
 def quartiles(values: list[float]) -> tuple[float, float, float]:
@@ -62,9 +66,25 @@ def quartiles(values: list[float]) -> tuple[float, float, float]:
     return low, median, high
 
 
-def bench(creature: str, batch: int, steps: int, warmup: int, device: str, profile: bool) -> Row:
-    """Time `steps` calls of a batched env of `batch` creatures; one table row."""
-    env = CreatureVectorEnv(batch, creature, frame_skip=1, dt=1 / 60, device=device)
+def bench(
+    creature: str,
+    batch: int,
+    steps: int,
+    warmup: int,
+    device: str,
+    profile: bool,
+    activation_time_constant: float | None = None,
+) -> Row:
+    """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
+    constant `activation_time_constant` in s, None: off); one table row."""
+    env = CreatureVectorEnv(
+        batch,
+        creature,
+        frame_skip=1,
+        dt=1 / 60,
+        device=device,
+        activation_time_constant=activation_time_constant,
+    )
     env.reset(seed=0)
     env.action_space.seed(0)
     for _ in range(warmup):
@@ -105,14 +125,24 @@ def bench(creature: str, batch: int, steps: int, warmup: int, device: str, profi
         env_steps_per_second_high=batch / low,
         newton_iterations=statistics.fmean(iterations) if iterations else float("nan"),
         failures=failures,
+        activation_time_constant=activation_time_constant,
     )
+
+
+def activation_text(time_constant: float | None) -> str:
+    """How the table's caption names the activation dynamics of a run."""
+    if not time_constant:
+        return "no activation dynamics (the action is the activation)"
+    return f"activation dynamics with τ = {time_constant:g} s (random commands, filtered)"
 
 
 def markdown(rows: list[Row], threads: int) -> str:
     """The results as a markdown table."""
+    dynamics = activation_text(rows[0].activation_time_constant)
     lines = [
         "Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, float64, "
-        f"Newton–CG (tol 1e-4 m/s), random actions (seed 0), {threads} thread(s), device {rows[0].device}. "
+        f"Newton–CG (tol 1e-4 m/s), random actions (seed 0), {dynamics}, "
+        f"{threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
         "range. Newton iterations: per physics step, the batched solve's count (its slowest entry).",
         "",
@@ -169,14 +199,23 @@ def main(argv: list[str] | None = None) -> list[Row]:
     default_device = "cuda" if torch.cuda.is_available() else "cpu"
     parser.add_argument("--device", default=default_device, help=f"torch device (default {default_device})")
     parser.add_argument("--profile", action="store_true", help="print cProfile's top functions per run")
+    parser.add_argument(
+        "--activation-time-constant",
+        type=float,
+        default=None,
+        help="τ in s of the env's activation dynamics (default: none, the action is the activation)",
+    )
     parser.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
         parser.error("batch sizes, --steps and --threads must be >= 1 and --warmup >= 0")
+    tau = args.activation_time_constant
+    if tau is not None and not (np.isfinite(tau) and tau >= 0):
+        parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
     configure_cpu(args.threads)
     rows = [
-        bench(creature, batch, args.steps, args.warmup, args.device, args.profile)
+        bench(creature, batch, args.steps, args.warmup, args.device, args.profile, tau)
         for creature in args.creatures
         for batch in args.batch_sizes
     ]

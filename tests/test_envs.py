@@ -1,5 +1,6 @@
 """The Gymnasium environments of the shipped creatures: API conformance, seeding, the reward against an
-independent simulation, batched against single environments, autoreset, numerical failures, bad input.
+independent simulation, batched against single environments, autoreset, numerical failures, bad input,
+and the optional first-order activation dynamics.
 
 Heavy tests run a short form on CI (the 2D crawler, a tiny time step for the API checks) and the full
 form with ENERGYSIM_HEAVY=1 (every creature at the registered defaults, the worm in 3D).
@@ -111,11 +112,29 @@ def test_gymnasium_env_checker_passes(creature: str) -> None:
         check_env(env.unwrapped)
 
 
-def test_same_seed_gives_the_same_rollout_and_another_seed_another_start() -> None:
+def test_gymnasium_env_checker_passes_with_activation_dynamics() -> None:
+    # the activation is state the env carries between steps: reset must clear it for determinism
+    env = gymnasium.make("energysim/Crawler2d-v0", activation_time_constant=0.05, dt=1e-3)
+    assert env.unwrapped.config.activation_time_constant == 0.05
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warnings.filterwarnings("ignore", message=".*Box observation space m.*infinity")
+        check_env(env.unwrapped)
+    vector = gymnasium.make_vec(
+        "energysim/Crawler2d-v0",
+        num_envs=2,
+        vectorization_mode="vector_entry_point",
+        activation_time_constant=0.05,
+    )
+    assert vector.unwrapped.config.activation_time_constant == 0.05
+
+
+@pytest.mark.parametrize("time_constant", [None, 0.05])
+def test_same_seed_gives_the_same_rollout_and_another_seed_another_start(time_constant: float | None) -> None:
     actions = np.random.default_rng(0).uniform(-0.5, 0.5, size=(3, 10)).astype(np.float32)
 
     def rollout(seed: int) -> list[np.ndarray]:
-        env = CreatureEnv("crawler2d")
+        env = CreatureEnv("crawler2d", activation_time_constant=time_constant)
         observation, _ = env.reset(seed=seed)
         records = [observation]
         for action in actions:
@@ -166,6 +185,7 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
     assert reward == pytest.approx(info["reward_forward"] + info["reward_ctrl"], abs=1e-15)
     assert info["reward_ctrl"] == pytest.approx(-ctrl_weight * (clipped**2).sum(), rel=1e-12)
     assert info["reward_forward"] == pytest.approx(forward_weight * info["x_velocity"], rel=1e-12)
+    assert np.array_equal(info["activation"], clipped)  # without a time constant, the action
 
     # the same three steps, simulated apart from the env from its start state
     creature = load_creature("crawler2d")
@@ -189,10 +209,13 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
     assert np.allclose(observation[layout.activation], clipped, atol=FLOAT32_TOLERANCE)
 
 
-def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11) -> None:
-    """Step a vector env and `batch` single envs (seeds seed + i) with the same actions; compare."""
-    vector = CreatureVectorEnv(batch, creature)
-    singles = [CreatureEnv(creature) for _ in range(batch)]
+def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11, **options: object) -> None:
+    """Step a vector env and `batch` single envs (seeds seed + i) with the same actions; compare.
+
+    `options` go to both constructors."""
+    vector = CreatureVectorEnv(batch, creature, **options)
+    singles = [CreatureEnv(creature, **options) for _ in range(batch)]
+    filtered = vector.config.filters_activation
     observations, _ = vector.reset(seed=seed)
     for i, env in enumerate(singles):
         assert np.array_equal(env.reset(seed=seed + i)[0], observations[i])
@@ -202,10 +225,14 @@ def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11) ->
         actions = np.clip(gait[k] + rng.uniform(-0.3, 0.3, size=(batch, gait.shape[1])), -1, 1)
         observations, rewards, terminated, truncated, info = vector.step(actions)
         assert not terminated.any() and not truncated.any()
-        assert np.array_equal(vector.activations.numpy(), actions)
+        if not filtered:
+            assert np.array_equal(vector.activations.numpy(), actions)
+        assert np.array_equal(info["activation"], vector.activations.numpy())
         for i, env in enumerate(singles):
             observation, reward, _, _, single_info = env.step(actions[i])
             assert torch.allclose(vector.states[i], env.state[0], rtol=0, atol=BATCH_TOLERANCE)
+            # the filter is elementwise, so batching cannot change it
+            assert torch.equal(vector.activations[i], env.activation[0])
             assert np.allclose(observations[i], observation, rtol=0, atol=FLOAT32_TOLERANCE)
             assert abs(rewards[i] - reward) < BATCH_TOLERANCE
             for key in ("x_position", "x_velocity", "reward_forward", "reward_ctrl"):
@@ -213,12 +240,72 @@ def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11) ->
 
 
 @pytest.mark.heavy
-def test_batched_step_equals_single_env_steps() -> None:
+@pytest.mark.parametrize("options", [{}, {"activation_time_constant": 0.05, "frame_skip": 2}])
+def test_batched_step_equals_single_env_steps(options: dict[str, object]) -> None:
     # one batched solve of B entries gives each entry what its own env gives (CI: the 2D crawler)
     if FULL:
-        batched_and_single("worm", batch=4, steps=3)
+        batched_and_single("worm", batch=4, steps=3, **options)
     else:
-        batched_and_single("crawler2d", batch=3, steps=2)
+        batched_and_single("crawler2d", batch=3, steps=2, **options)
+
+
+def test_activation_dynamics_are_the_exact_step_response() -> None:
+    # from rest under a constant command u, ȧ = (u − a)/τ gives a(t) = u (1 − e^{−t/τ}) exactly: the
+    # per-step update u + (a − u) e^{−h/τ} must reproduce it after k physics steps, to rounding
+    frame_skip, dt, tau, ctrl_weight = 3, 1 / 60, 0.05, 0.1
+    env = CreatureEnv(
+        "crawler2d", frame_skip=frame_skip, dt=dt, activation_time_constant=tau, ctrl_cost_weight=ctrl_weight
+    )
+    observation, _ = env.reset(seed=2)
+    layout = env.simulation.layout
+    assert (observation[layout.activation] == 0).all() and torch.equal(env.activation, torch.zeros(1, 10))
+    start = env.state[0].clone()
+    action = np.linspace(-1.5, 1.5, 10)  # partly outside [-1, 1]: the command is clipped first
+    command = np.clip(action, -1, 1)
+    for step in (1, 2):
+        observation, reward, terminated, _, info = env.step(action)
+        assert not terminated
+        expected = command * (1 - np.exp(-step * frame_skip * dt / tau))
+        assert np.abs(info["activation"] - expected).max() < 1e-12
+        assert np.abs(env.activation[0].numpy() - expected).max() < 1e-12
+        assert np.allclose(observation[layout.activation], expected, rtol=0, atol=FLOAT32_TOLERANCE)
+        # the control cost is on the command, as MuJoCo's
+        assert info["reward_ctrl"] == pytest.approx(-ctrl_weight * (command**2).sum(), rel=1e-12)
+        assert reward == pytest.approx(info["reward_forward"] + info["reward_ctrl"], abs=1e-15)
+
+    # the physics saw the filtered activation of every physics step, not the command
+    creature = load_creature("crawler2d")
+    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4))
+    state = start
+    for k in range(1, 2 * frame_skip + 1):
+        activation = torch.from_numpy(command * (1 - np.exp(-k * dt / tau)))
+        state = es.step(scene, state, activation).state
+    assert torch.allclose(state, env.state[0], rtol=0, atol=BATCH_TOLERANCE)
+
+    # a reset puts the muscles back at rest
+    observation, _ = env.reset(seed=2)
+    assert (observation[layout.activation] == 0).all() and not env.activation.any()
+
+
+def test_no_time_constant_is_todays_env_bit_for_bit() -> None:
+    # None and 0 both switch the dynamics off: the action is the activation, with no arithmetic on it
+    actions = np.random.default_rng(3).uniform(-1.2, 1.2, size=(3, 10))
+
+    def rollout(**options: object) -> list[np.ndarray]:
+        env = CreatureEnv("crawler2d", frame_skip=2, **options)
+        observation, _ = env.reset(seed=9)
+        records = [observation]
+        for action in actions:
+            observation, reward, _, _, info = env.step(action)
+            records += [observation, np.array([reward]), env.state[0].numpy(), info["activation"]]
+        return records
+
+    default = rollout()
+    for records in (rollout(activation_time_constant=None), rollout(activation_time_constant=0.0)):
+        assert all(np.array_equal(a, b) for a, b in zip(default, records, strict=True))
+    assert default[-1].tolist() == np.clip(actions[-1], -1, 1).tolist()
+    filtered = rollout(activation_time_constant=0.05)
+    assert not np.array_equal(default[1], filtered[1])
 
 
 def test_autoreset_is_next_step_like_gymnasiums_sync_vector_env() -> None:
@@ -386,6 +473,13 @@ def test_bad_arguments_raise_clear_errors() -> None:
         CreatureEnv("worm", max_episode_steps=0)
     with pytest.raises(ValueError, match="num_markers must be at most"):
         CreatureEnv("worm", num_markers=10_000)
+    for tau in (-0.01, float("nan"), float("inf"), "0.05", True):
+        with pytest.raises(ValueError, match="activation_time_constant must be a finite number and >= 0.0 s"):
+            CreatureEnv("worm", activation_time_constant=tau)
+    with pytest.raises(ValueError, match="activation_time_constant"):
+        CreatureVectorEnv(2, "worm", activation_time_constant=-1.0)
+    with pytest.raises(ValueError, match="activation_time_constant"):
+        envs.CreatureEnvConfig(activation_time_constant=float("nan"))
     with pytest.raises(ValueError, match="render_mode"):
         CreatureEnv("worm", render_mode="human")
     env = CreatureEnv("worm")
@@ -420,3 +514,12 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
         assert row.env_steps_per_second == pytest.approx(row.batch / (1e-3 * row.ms_per_call))
     table = (tmp_path / "bench_env.md").read_text()
     assert "| crawler2d | 2 |" in table and (tmp_path / "bench_env.csv").exists()
+    assert "no activation dynamics" in table
+    # the activation time constant reaches the env and is recorded in both files
+    rows = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "1", "--steps", "1", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--activation-time-constant", "0.05"]
+    )
+    assert rows[0].activation_time_constant == 0.05
+    assert "τ = 0.05 s" in (tmp_path / "bench_env.md").read_text()
+    assert "activation_time_constant" in (tmp_path / "bench_env.csv").read_text().splitlines()[0]

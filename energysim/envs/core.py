@@ -9,6 +9,10 @@ solve that does not reach `solver_tol` within `solver_max_iter` Newton iteration
 `ConvergenceError`, as does a non-finite iterate. The batch is then split in halves, recursively,
 until the failing entries stand alone: they keep their last good state and are flagged, the others
 are stepped as if nothing had happened (entries of a batched solve never mix, see `NewtonCG`).
+
+With `activation_time_constant` τ set, the action is a command u that the muscles' activation a
+follows with first-order dynamics ȧ = (u − a)/τ, integrated exactly over each physics step; without
+it the action is the activation, as before.
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ class CreatureEnvConfig:
         frame_skip: physics steps per env step, each with the env step's action.
         dt: physics time step h in s; an env step lasts `frame_skip`·h.
         forward_reward_weight: reward per m/s of forward (+x) centre-of-mass velocity.
-        ctrl_cost_weight: cost per unit of ‖a‖² (a the clipped action).
+        ctrl_cost_weight: cost per unit of ‖u‖² (u the clipped action).
         reset_noise_scale: half-width of the uniform noise added at reset to every rest position
             component (m) and velocity component (m/s).
         friction: Coulomb coefficient μ of the ground.
@@ -63,6 +67,9 @@ class CreatureEnvConfig:
         solver_max_iter: most Newton iterations per physics step; a step that needs more fails.
         max_episode_steps: env steps before truncation, or None for none.
         num_markers: marker vertices in the observation.
+        activation_time_constant: τ in s of first-order activation dynamics: the activation a
+            follows the action u as ȧ = (u − a)/τ, starting from rest (a = 0) at a reset. None or 0:
+            none, the action is the activation.
     """
 
     creature: str = "worm"
@@ -76,6 +83,7 @@ class CreatureEnvConfig:
     solver_max_iter: int = 100
     max_episode_steps: int | None = None
     num_markers: int = 12
+    activation_time_constant: float | None = None
 
     def __post_init__(self) -> None:
         if self.creature not in CREATURES:
@@ -91,6 +99,20 @@ class CreatureEnvConfig:
         if self.max_episode_steps is not None:
             _check_integer(self.max_episode_steps, "max_episode_steps", 1)
         _check_integer(self.num_markers, "num_markers", 1)
+        if self.activation_time_constant is not None:
+            _check_number(self.activation_time_constant, "activation_time_constant", " s", 0.0)
+
+    @property
+    def filters_activation(self) -> bool:
+        """Whether the activation follows the action with a time constant (τ set and > 0)."""
+        return self.activation_time_constant is not None and self.activation_time_constant > 0
+
+    def activation_decay(self) -> float:
+        """exp(−h/τ): the fraction of a − u left after one physics step (0 without a time constant)."""
+        tau = self.activation_time_constant
+        if tau is None or tau <= 0:
+            return 0.0
+        return math.exp(-self.dt / tau)
 
 
 @dataclass(frozen=True)
@@ -99,11 +121,13 @@ class Transition:
 
     Attributes:
         state: the new states `[B, 2·n·d]`; a failed entry keeps its last good state.
-        activation: the actions applied, clipped to [−1, 1], `[B, a]`.
-        observation: `[B, layout.size]`, at `state`.
+        action: the actions u, clipped to [−1, 1], `[B, a]`.
+        activation: the activations of the last physics step each entry attempted, `[B, a]`: `action`
+            itself without a time constant, else its filtered value (`CreatureEnvConfig`).
+        observation: `[B, layout.size]`, at `state` and `activation`.
         reward: `reward_forward + reward_ctrl`, `[B]`.
         reward_forward: `forward_reward_weight` × `x_velocity`, `[B]`.
-        reward_ctrl: −`ctrl_cost_weight` × ‖activation‖², `[B]`.
+        reward_ctrl: −`ctrl_cost_weight` × ‖action‖², `[B]` (on the command, as MuJoCo's control cost).
         x_position: centre-of-mass x at `state`, `[B]`, in m.
         x_velocity: centre-of-mass x displacement over the step / (frame_skip·h), `[B]`, in m/s.
         numerical_failure: which entries failed, `[B]`, bool.
@@ -112,6 +136,7 @@ class Transition:
     """
 
     state: Tensor
+    action: Tensor
     activation: Tensor
     observation: Tensor
     reward: Tensor
@@ -219,39 +244,66 @@ class CreatureSimulation:
             raise ValueError(f"action has non-finite entries in batch entries {bad}")
         return action.clamp(-1.0, 1.0)
 
-    def step(self, state: Tensor, action: Tensor) -> Transition:
+    def rest_activation(self, batch: int) -> Tensor:
+        """The activations of relaxed muscles, zeros `[batch, a]` (what a reset starts from)."""
+        return torch.zeros(batch, self.num_actuators, device=self.device, dtype=self.dtype)
+
+    def step(self, state: Tensor, action: Tensor, activation: Tensor | None = None) -> Transition:
         """`frame_skip` physics steps of every entry with its action `[B, a]` (clipped to [−1, 1]).
 
-        An entry whose solve fails stops at its last good state for the rest of the frame.
+        Without `activation_time_constant` the clipped action u is the activation of every physics
+        step. With τ, the activation starts from `activation` `[B, a]` (None: at rest, zeros) and
+        before each physics step of length h becomes u + (a − u)·exp(−h/τ): the exact solution of
+        ȧ = (u − a)/τ for u held constant over the step. An entry whose solve fails stops at its last
+        good state for the rest of the frame, and its activation at the one it failed with.
         """
-        activation = self.check_action(action)
-        if state.ndim != 2 or state.shape[0] != activation.shape[0]:
-            raise ValueError(f"state must have shape [{activation.shape[0]}, 2·n·d], got {list(state.shape)}")
+        command = self.check_action(action)
+        if state.ndim != 2 or state.shape[0] != command.shape[0]:
+            raise ValueError(f"state must have shape [{command.shape[0]}, 2·n·d], got {list(state.shape)}")
         batch = state.shape[0]
+        filtering = self.config.filters_activation
+        decay = self.config.activation_decay()
+        if not filtering:
+            # the action itself, untouched: the default stays exactly what it was before τ existed
+            current = command
+        elif activation is None:
+            current = self.rest_activation(batch)
+        else:
+            current = torch.as_tensor(activation, device=self.device).to(self.dtype)
+            if current.shape != command.shape:
+                expected, got = list(command.shape), list(current.shape)
+                raise ValueError(f"activation must have the action's shape {expected}, got {got}")
         x_before = self.x_position(state)
         alive = torch.ones(batch, dtype=torch.bool, device=self.device)
         iterations = torch.zeros(batch, dtype=torch.int64, device=self.device)
         with torch.no_grad():
             for _ in range(self.config.frame_skip):
                 if bool(alive.all()):
-                    state, ok, taken = self._solve(state, activation)
+                    if filtering:
+                        current = command + (current - command) * decay
+                    state, ok, taken = self._solve(state, current)
                     alive, iterations = ok, iterations + taken
                     continue
                 index = torch.nonzero(alive).flatten()
                 if index.numel() == 0:
                     break
-                new, ok, taken = self._solve(state[index], activation[index])
+                if filtering:
+                    # failed entries keep the activation they failed with, as they keep their state
+                    advanced = command[index] + (current[index] - command[index]) * decay
+                    current = current.index_copy(0, index, advanced)
+                new, ok, taken = self._solve(state[index], current[index])
                 state = state.index_copy(0, index, new)
                 alive = alive.index_copy(0, index, ok)
                 iterations = iterations.index_add(0, index, taken)
             x_after = self.x_position(state)
             x_velocity = (x_after - x_before) / self.frame_seconds
             reward_forward = self.config.forward_reward_weight * x_velocity
-            reward_ctrl = -self.config.ctrl_cost_weight * activation.square().sum(dim=1)
-            observation = self.observe(state, activation)
+            reward_ctrl = -self.config.ctrl_cost_weight * command.square().sum(dim=1)
+            observation = self.observe(state, current)
         return Transition(
             state=state,
-            activation=activation,
+            action=command,
+            activation=current,
             observation=observation,
             reward=reward_forward + reward_ctrl,
             reward_forward=reward_forward,

@@ -1,6 +1,7 @@
 """`CreatureEnv`: one shipped soft creature on level ground as a Gymnasium environment.
 
-The agent sets the muscle activations; the reward is the forward (+x) speed of the centre of mass
+The agent sets the muscle activations (or, with `activation_time_constant`, the command they
+follow with first-order dynamics); the reward is the forward (+x) speed of the centre of mass
 minus a control cost, as in Gymnasium's MuJoCo locomotion tasks. See docs/envs.md.
 """
 
@@ -28,12 +29,14 @@ def action_space(simulation: CreatureSimulation) -> spaces.Box:
 
 
 def step_info(transition: Transition, index: int) -> dict[str, Any]:
-    """The info dict of batch entry `index`: every reward term and what the solver did."""
+    """The info dict of batch entry `index`: every reward term, the activation the muscles hold
+    (float64 `[a]`) and what the solver did."""
     return {
         "x_position": float(transition.x_position[index]),
         "x_velocity": float(transition.x_velocity[index]),
         "reward_forward": float(transition.reward_forward[index]),
         "reward_ctrl": float(transition.reward_ctrl[index]),
+        "activation": transition.activation[index].detach().cpu().numpy().astype(np.float64),
         "solver_iterations": int(transition.solver_iterations[index]),
         "numerical_failure": bool(transition.numerical_failure[index]),
     }
@@ -44,16 +47,18 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
 
     Observation (float32, see `ObservationLayout`): centre-of-mass height and velocity, positions and
     velocities of `num_markers` surface markers relative to the centre of mass, the 6D (3D) or
-    (cos θ, sin θ) (2D) orientation of the body's best-fit rigid frame, and the last activations.
-    Action: one activation per actuator in [−1, 1] (clipped). Reward: `forward_reward_weight` ×
-    centre-of-mass x velocity over the step − `ctrl_cost_weight` × ‖a‖². A failed solve ends the
-    episode (`terminated`, `info["numerical_failure"]`) with the last good observation.
+    (cos θ, sin θ) (2D) orientation of the body's best-fit rigid frame, and the muscles' activations.
+    Action: one activation per actuator in [−1, 1] (clipped), or with `activation_time_constant` τ
+    the command u that the activation a follows, ȧ = (u − a)/τ, from a = 0 at reset. Reward:
+    `forward_reward_weight` × centre-of-mass x velocity over the step − `ctrl_cost_weight` × ‖u‖².
+    A failed solve ends the episode (`terminated`, `info["numerical_failure"]`) with the last good
+    observation.
 
     Args:
         creature: a name in `energysim.creatures.CREATURES`.
         frame_skip: physics steps per env step.
         dt: physics time step in s.
-        forward_reward_weight, ctrl_cost_weight: reward weights (per m/s, per unit ‖a‖²).
+        forward_reward_weight, ctrl_cost_weight: reward weights (per m/s, per unit ‖u‖²).
         reset_noise_scale: uniform reset noise half-width, m for positions and m/s for velocities.
         friction: Coulomb coefficient of the ground.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
@@ -61,12 +66,16 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         max_episode_steps: truncate after this many env steps; None: never (`gymnasium.make`
             truncates through the registration's `TimeLimit` instead).
         num_markers: marker vertices in the observation.
+        activation_time_constant: τ in s of the activation dynamics; None or 0: none, the action is
+            the activation (see `CreatureEnvConfig`).
         render_mode: None or "rgb_array" (a side view, see `SideViewRenderer`).
         device, dtype: where and in which precision the simulation runs.
 
     Attributes:
         simulation: the `CreatureSimulation` stepped with a batch of one (scene, markers, layout).
         state: the current state, shape `[1, 2·n·d]`, in m and m/s; None before the first reset.
+        activation: the activations the muscles hold, shape `[1, a]` (the last action, clipped, or
+            its filtered value with τ; zeros after a reset); None before the first reset.
         elapsed_steps: env steps since the last reset.
     """
 
@@ -86,6 +95,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         solver_max_iter: int = 100,
         max_episode_steps: int | None = None,
         num_markers: int = 12,
+        activation_time_constant: float | None = None,
         render_mode: str | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
@@ -102,6 +112,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             solver_max_iter=solver_max_iter,
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,
+            activation_time_constant=activation_time_constant,
         )
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(
@@ -117,6 +128,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self.observation_space = observation_space(self.simulation)
         self.action_space = action_space(self.simulation)
         self.state: torch.Tensor | None = None  # [1, 2·n·d]
+        self.activation: torch.Tensor | None = None  # [1, a]
         self.elapsed_steps = 0
         self._observation = np.zeros(self.observation_space.shape, dtype=np.float32)
         self._renderer: SideViewRenderer | None = None
@@ -127,16 +139,14 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         """Rest shape and zero velocity with uniform noise (`reset_noise_scale`), just touching the ground."""
         super().reset(seed=seed, options=options)
         self.state = self.simulation.reset([self.np_random])
-        simulation = self.simulation
-        activation = torch.zeros(
-            1, simulation.num_actuators, device=simulation.device, dtype=simulation.dtype
-        )
+        self.activation = self.simulation.rest_activation(1)
         self.elapsed_steps = 0
-        self._observation = self._to_numpy(self.simulation.observe(self.state, activation))
+        self._observation = self._to_numpy(self.simulation.observe(self.state, self.activation))
         return self._observation.copy(), {"x_position": float(self.simulation.x_position(self.state)[0])}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Advance `frame_skip` physics steps with `action` (shape `[a]`, clipped to [−1, 1])."""
+        """Advance `frame_skip` physics steps with `action` (shape `[a]`, clipped to [−1, 1]): the
+        activation, or with τ the command the activation follows."""
         if self.state is None:
             raise RuntimeError("call reset() before step()")
         action = np.asarray(action, dtype=np.float64)
@@ -145,8 +155,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
                 f"action must have shape {self.action_space.shape} (one activation per actuator of the "
                 f"{self.config.creature}), got {action.shape}"
             )
-        transition = self.simulation.step(self.state, torch.from_numpy(action)[None])
+        transition = self.simulation.step(self.state, torch.from_numpy(action)[None], self.activation)
         self.state = transition.state
+        self.activation = transition.activation
         self.elapsed_steps += 1
         info = step_info(transition, 0)
         # a failed entry's observation is that of its last good state, finite by construction

@@ -92,7 +92,8 @@ class ObservationLayout:
             in m, world axes.
         marker_velocities: their velocities relative to the centre-of-mass velocity, K·d entries, in m/s.
         orientation: `orientation_features` of the best-fit rotation, d(d − 1) entries.
-        activation: the last action applied (clipped to [−1, 1]), a entries.
+        activation: the activations the muscles hold, a entries: the last action (clipped to
+            [−1, 1]), or its filtered value with `activation_time_constant`.
     """
 
     com_height: slice
@@ -139,7 +140,7 @@ def observe(
 
     Args:
         x, v: positions (m) and velocities (m/s), shape `[B, n, d]`.
-        activation: the last actions, shape `[B, a]`.
+        activation: the activations the muscles hold, shape `[B, a]`.
         rest: rest positions, shape `[n, d]`, in m.
         vertex_mass: shape `[n]`, in kg.
         markers: marker vertex indices, shape `[K]`.

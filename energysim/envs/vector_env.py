@@ -25,7 +25,14 @@ from gymnasium.vector.utils import batch_space
 from energysim.envs.core import CreatureEnvConfig, CreatureSimulation
 from energysim.envs.creature_env import action_space, observation_space
 
-STEP_INFO_KEYS = ("x_velocity", "reward_forward", "reward_ctrl", "solver_iterations", "numerical_failure")
+STEP_INFO_KEYS = (
+    "x_velocity",
+    "reward_forward",
+    "reward_ctrl",
+    "activation",
+    "solver_iterations",
+    "numerical_failure",
+)
 
 
 class CreatureVectorEnv(gymnasium.vector.VectorEnv):
@@ -38,14 +45,14 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
             passes the registration's value).
 
     Info: arrays of length B with a `_key` mask each, as Gymnasium's vector envs give them:
-    "x_position" for every entry; "x_velocity", "reward_forward", "reward_ctrl",
-    "solver_iterations" and "numerical_failure" for the entries stepped (not those reset).
+    "x_position" for every entry; "x_velocity", "reward_forward", "reward_ctrl", "activation"
+    (`[B, a]`), "solver_iterations" and "numerical_failure" for the entries stepped (not those reset).
 
     Attributes:
         simulation: the batched `CreatureSimulation` (scene, markers, observation layout).
         states: the B states, shape `[B, 2·n·d]`, in m and m/s, on the simulation's device.
-        activations: the activations the muscles hold, shape `[B, a]` (last actions, clipped; zeros
-            after a reset).
+        activations: the activations the muscles hold, shape `[B, a]` (last actions, clipped, or their
+            filtered values with `activation_time_constant`; zeros after a reset).
         elapsed_steps: env steps since each entry's reset, shape `[B]`.
     """
 
@@ -66,6 +73,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         solver_max_iter: int = 100,
         max_episode_steps: int | None = None,
         num_markers: int = 12,
+        activation_time_constant: float | None = None,
         render_mode: str | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
@@ -88,6 +96,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
             solver_max_iter=solver_max_iter,
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,
+            activation_time_constant=activation_time_constant,
         )
         self.simulation = CreatureSimulation(self.config, device=device, dtype=dtype)
         self.num_envs = int(num_envs)
@@ -101,13 +110,9 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.states = self.simulation.rest_state.expand(self.num_envs, -1).clone()
-        # the activations each entry's muscles hold now: its last action, clipped (zeros after a reset)
-        self.activations = torch.zeros(
-            self.num_envs,
-            self.simulation.num_actuators,
-            device=self.simulation.device,
-            dtype=self.simulation.dtype,
-        )
+        # the activations each entry's muscles hold now: the state of the activation dynamics, or
+        # the last action, clipped, without them (zeros after a reset)
+        self.activations = self.simulation.rest_activation(self.num_envs)
         self.elapsed_steps = np.zeros(self.num_envs, dtype=np.int64)
         self.observations = np.zeros((self.num_envs, self.simulation.layout.size), dtype=np.float32)
         self._generators: list[np.random.Generator | None] = [None] * self.num_envs
@@ -170,7 +175,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         if stepping.size:
             index = torch.from_numpy(stepping).to(self.simulation.device)
             action = torch.from_numpy(actions[stepping])
-            transition = self.simulation.step(self.states[index], action)
+            transition = self.simulation.step(self.states[index], action, self.activations[index])
             self.states = self.states.index_copy(0, index, transition.state)
             self.activations = self.activations.index_copy(0, index, transition.activation)
             self.observations[stepping] = transition.observation.cpu().numpy()
@@ -183,7 +188,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
             stepped = ~resetting
             for key in STEP_INFO_KEYS:
                 values = getattr(transition, key).cpu().numpy()
-                array = np.zeros(self.num_envs, dtype=values.dtype)
+                array = np.zeros((self.num_envs, *values.shape[1:]), dtype=values.dtype)
                 array[stepping] = values
                 info[key], info[f"_{key}"] = array, stepped.copy()
         info["x_position"] = self.simulation.x_position(self.states).cpu().numpy()
