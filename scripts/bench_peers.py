@@ -1,12 +1,12 @@
 """energysim against NVIDIA Warp's soft-body FEM (the `newton` package): wall time per simulated second
 at equal or smaller error.
 
-The scene is `bench_step`'s cantilever (1 × 0.2 × 0.2 m clamped at x = 0, E = 1e5 Pa, ν = 0.3,
-ρ = 1000 kg/m³, gravity 9.81 m/s² along −y), released from rest and simulated for `--checkpoints`
-× 1/12 s (1 s by default). Both simulators get the same tet mesh (energysim's `TetMesh.box`, handed
-to `newton.ModelBuilder.add_soft_mesh`), the same lumped masses (ρ V/4 per vertex), the clamped
-vertices as zero-mass (kinematic) particles, and no contact of any kind (Newton's particle–particle
-and triangle contact are switched off: the energysim scene has none).
+The scene is `bench_step`'s cantilever (1 × 0.2 × 0.2 m clamped at x = 0, E = 1e5 Pa, ν = 0.3 or
+`--poissons-ratio`, ρ = 1000 kg/m³, gravity 9.81 m/s² along −y), released from rest and simulated for
+`--checkpoints` × 1/12 s (1 s by default). Both simulators get the same tet mesh (energysim's
+`TetMesh.box`, handed to `newton.ModelBuilder.add_soft_mesh`), the same lumped masses (ρ V/4 per
+vertex), the clamped vertices as zero-mass (kinematic) particles, and no contact of any kind
+(Newton's particle–particle and triangle contact are switched off: the energysim scene has none).
 
 Materials. energysim uses the stable neo-Hookean energy of Smith et al. (2018) in the paper's form
 ψ = μ'/2 (I_C − 3) + λ'/2 (J − α)² − μ'/2 log(I_C + 1), μ' = 4μ/3, λ' = λ + 5μ/6, α = 1 + 3μ'/(4λ').
@@ -18,22 +18,33 @@ Newton's XPBD tet constraint (C = I_C − 3 and C = J − 1) is a different mate
 small-strain shear stiffness), so it is not compared.
 
 Error. Every run is compared at the times all of them share (multiples of 1/12 s; nothing is
-interpolated) with one reference trajectory: energysim's Newton–CG at tol 1e-9 m/s on the same mesh,
-at steps h_r = 1/(12 `--reference-steps`), h_r/2 … combined by Richardson extrapolation
-(x_ref = 2 x(h_r/2) − x(h_r) twice over, since implicit Euler's error is first order in h). The
-reference's own error is estimated from the two extrapolations and printed beside it. error = the
-largest distance |x − x_ref| of any vertex at any of those times; final error = at the last time.
+interpolated) with one reference trajectory: energysim's Newton–CG at tol 1e-9 m/s on the same mesh
+with the second-order TR-BDF2 step (`--reference-integrator`), at h_f = 1/(12 `--reference-steps`) s
+(1/1920 s by default) and 2 h_f, combined by Richardson extrapolation for order 2:
+x_ref = (4 x(h_f) − x(2 h_f))/3. Its error is estimated conservatively as max |x(h_f) − x(2 h_f)|/3
+over vertices and times: that is the error of the finer run itself, which the extrapolation only
+reduces. `--reference-integrator implicit_euler` gives the earlier reference instead: implicit Euler
+at h_f·4, h_f·2 and h_f (`--reference-steps` 320 by default), extrapolated for order 1 twice over,
+its error a third of the two extrapolations' largest difference. The check that the reference is
+right: the energysim runs converge to it at their own order, first for implicit Euler and second for
+TR-BDF2 (`check`, and the observed orders printed under the table). error = the largest distance
+|x − x_ref| of any vertex at any of those times; final error = at the last time.
 A trajectory is the right yardstick for time integrators: the settled sag would reward any heavily
 damped scheme (and the semi-implicit integrator never settles without added damping, which changes
 the physics), and this beam's sag (about 0.7 m for a 1 m beam) is far outside linear elasticity, so a
 linear scikit-fem static solution is no reference for it.
 
-Runs. energysim: Newton–CG at h = 1/24 … 1/240 s and the tolerances `--tols`, and the reference's own
-three runs (tol 1e-9 m/s, tighter than their error needs: a conservative cost). Peer: the semi-implicit
-integrator at its largest stable step, found by doubling h from 1/(12·`--search-start`) s until the
-run blows up (non-finite, or farther than 1 m from the reference) or its error exceeds
-`--accuracy-limit`, then bisecting the steps per 1/12 s
-between the last good and the first bad count; it is then also timed at 1/2 and 1/4 of that step.
+Runs. energysim: Newton–CG with each integrator of `--integrators` (implicit Euler: one solve per
+step, first order; TR-BDF2: two solves per step, second order; see `energysim.step.step`) at
+h = 1/24 … 1/240 s and the tolerances `--tols`, and the reference's own runs (tol 1e-9 m/s, tighter
+than their error needs: a conservative cost). Newton–CG solves its linear systems directly up to
+`--direct-max-dofs` DOFs (5000 by default, so the 1k-tet beam's 768 DOFs take the block-tridiagonal
+level solve of `direct="auto"`; the solver's own default, 600, would send them to CG), by CG above
+that. Peer: the semi-implicit integrator at its largest stable step, found by doubling h from
+1/(12·`--search-start`) s until the run blows up (non-finite, or farther than 1 m from the reference)
+or its error exceeds `--accuracy-limit`, then bisecting the steps per 1/12 s between the last good
+and the first bad count (with the same ν as energysim); it is then also timed at 1/2 and 1/4 of that
+step.
 VBD (implicit Euler by vertex block descent, a fixed number of iterations per step) at `--vbd`
 settings. Wall time per simulated second is the median of `--repeats` runs for the peer (Warp's
 kernels are compiled, and cached, before timing) and of one run for energysim (torch threads:
@@ -44,8 +55,9 @@ the fastest peer run whose error is at most its own; "ratio VBD" the same agains
 Without warp/newton installed the energysim side still runs, and the table says the peer is missing
 (`pip install warp-lang newton`); the script then exits normally.
 
-Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, about 10 min on 2 cores
+Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, about 5 min on 2 cores
       python scripts/bench_peers.py --sizes tiny --checkpoints 3 --reference-steps 40 --dts 2 4 --vbd
+      python scripts/bench_peers.py --poissons-ratio 0.49 --out out/bench_peers_nu049  # near-incompressible
 Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
 wall time per simulated second) and bench_peers_search.csv (the stable-step search).
 """
@@ -69,7 +81,7 @@ import energysim as es
 from energysim.fem.materials import lame_parameters, smith_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import save_figure, write_csv  # noqa: E402
+from _common import INTEGRATOR_ORDER, save_figure, write_csv  # noqa: E402
 from bench_step import SIZES, build_scene  # noqa: E402
 
 CHECKPOINT_S = 1.0 / 12.0  # every step size below divides it
@@ -77,6 +89,13 @@ YOUNGS_MODULUS, POISSONS_RATIO, DENSITY, GRAVITY = 1e5, 0.3, 1000.0, 9.81  # ben
 DEFAULT_DTS = (2, 4, 5, 10, 20)  # energysim steps per 1/12 s: h = 1/24, 1/48, 1/60, 1/120, 1/240 s
 DEFAULT_TOLS = (1e-2, 1e-3, 1e-5)  # m/s
 REFERENCE_TOL = 1e-9  # m/s
+# finest reference steps per 1/12 s. On the 1k-tet beam over 1 s, TR-BDF2's two runs at 1/960 and
+# 1/1920 s give an estimated error of 7e-6 m in 61 s (one thread); implicit Euler's three down to
+# 1/3840 s took 112 s for an estimated 2.7e-4 m, and lie 4.4e-4 m from the TR-BDF2 extrapolation
+DEFAULT_REFERENCE_STEPS = {"tr_bdf2": 160, "implicit_euler": 320}
+# Newton–CG solves systems of up to this many DOFs directly: the 1k-tet beam (768) takes the
+# block-tridiagonal level solve, 0.87 against 1.07 s per simulated second by CG at h = 1/48 s, tol 1e-3
+DEFAULT_DIRECT_MAX_DOFS = 5000
 BLOWN_UP_M = 1.0  # a run farther than the beam's length from the reference has blown up
 ENERGYSIM = "energysim"
 PEER = "warp/newton"
@@ -88,6 +107,7 @@ class Run:
 
     tets: int
     simulator: str  # "energysim" or "warp/newton"
+    integrator: str  # energysim: one of `es.INTEGRATORS`; the peer: "semi_implicit_euler" or "implicit_euler"
     method: str  # e.g. "newton-cg tol 1e-05", "semi-implicit", "vbd 10 iterations"
     tol: float  # energysim: the velocity-residual tolerance (m/s); NaN for the peer
     dt: float  # time step, s
@@ -106,26 +126,43 @@ class Run:
 # --- energysim ---------------------------------------------------------------------------------
 
 
+def cantilever_scene(cells: tuple[int, int, int], poissons_ratio: float = POISSONS_RATIO) -> es.Scene:
+    """`bench_step`'s cantilever on a box mesh with `cells` cells, its material's ν = `poissons_ratio`."""
+    scene = build_scene(cells)
+    for term in scene.terms:
+        if isinstance(term, es.NeoHookean):
+            term.poissons_ratio = torch.full_like(term.poissons_ratio, poissons_ratio)
+    return scene
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """An energysim run from rest: positions at t = 0, 1/12 s, …, shape `[C + 1, n, 3]` in m, and its cost."""
 
     positions: Tensor
     steps_per_checkpoint: int
+    integrator: str
     wall_s: float
     steps: int
     converged: int  # steps that reached the tolerance
+    iterations: int  # Newton iterations, all steps (both stages of a TR-BDF2 step)
     hvps: int  # Hessian-vector products, all steps
 
 
 def energysim_trajectory(
-    scene: es.Scene, steps_per_checkpoint: int, checkpoints: int, solver: es.Solver
+    scene: es.Scene,
+    steps_per_checkpoint: int,
+    checkpoints: int,
+    solver: es.Solver,
+    integrator: str = "implicit_euler",
 ) -> Trajectory:
-    """Step the scene from rest at h = 1/(12 `steps_per_checkpoint`) s for `checkpoints` × 1/12 s."""
+    """Step the scene from rest with `integrator` at h = 1/(12 `steps_per_checkpoint`) s for
+    `checkpoints` × 1/12 s."""
     scene.dt = CHECKPOINT_S / steps_per_checkpoint
+    scene.integrator = integrator
     state = scene.initial_state()
     positions = [scene.split_state(state)[0][0]]
-    converged = steps = hvps = 0
+    converged = steps = iterations = hvps = 0
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", es.ConvergenceWarning)  # counted below instead
@@ -134,33 +171,64 @@ def energysim_trajectory(
                 result = es.step(scene, state, solver=solver)
                 state = result.state
                 converged += bool(result.stats.converged)
+                iterations += result.stats.iterations
                 hvps += result.stats.hvp_evals
                 steps += 1
             positions.append(scene.split_state(state)[0][0])
     return Trajectory(
-        torch.stack(positions), steps_per_checkpoint, time.perf_counter() - start, steps, converged, hvps
+        torch.stack(positions),
+        steps_per_checkpoint,
+        integrator,
+        time.perf_counter() - start,
+        steps,
+        converged,
+        iterations,
+        hvps,
     )
 
 
+def richardson(coarse: Tensor, fine: Tensor, order: int) -> Tensor:
+    """Richardson extrapolation of two runs at h and h/2 of a method of `order`:
+    fine + (fine − coarse)/(2^order − 1), which cancels the error's leading term c h^order."""
+    return fine + (fine - coarse) / (2**order - 1)
+
+
 def reference_trajectory(
-    scene: es.Scene, checkpoints: int, finest_steps: int
+    scene: es.Scene,
+    checkpoints: int,
+    finest_steps: int,
+    integrator: str = "tr_bdf2",
+    direct_max_dofs: int = DEFAULT_DIRECT_MAX_DOFS,
 ) -> tuple[Tensor, float, list[Trajectory]]:
-    """Richardson-extrapolated Newton–CG trajectory `[checkpoints + 1, n, 3]` (m) from runs at
-    `finest_steps` / 4, / 2 and / 1 steps per 1/12 s; its estimated error (m: a third of the two
-    extrapolations' largest difference, as their errors fall by 4× per halving of h), and the runs."""
-    if finest_steps % 4:
-        raise ValueError(f"--reference-steps must be a multiple of 4, got {finest_steps}")
-    solver = es.NewtonCG(tol=REFERENCE_TOL, max_iter=100)
+    """Richardson-extrapolated Newton–CG trajectory `[checkpoints + 1, n, 3]` (m), its estimated error
+    (m) and the runs it came from.
+
+    "tr_bdf2" (second order): runs at `finest_steps` / 2 and / 1 steps per 1/12 s, x_ref = (4 x_fine −
+    x_coarse)/3; the error estimate max |x_fine − x_coarse|/3 is the fine run's own error, which the
+    extrapolation only reduces (conservative). "implicit_euler" (first order): runs at `finest_steps`
+    / 4, / 2 and / 1, extrapolated pairwise (2 x(h/2) − x(h)); the finer extrapolation is x_ref and a
+    third of the two extrapolations' largest difference its error, as theirs fall by 4× per halving."""
+    order = INTEGRATOR_ORDER[integrator]
+    # a second-order method needs one extrapolation, and one pair of runs; implicit Euler two of each
+    divisors = (2, 1) if order == 2 else (4, 2, 1)
+    if finest_steps % divisors[0]:
+        raise ValueError(
+            f"--reference-steps must be a multiple of {divisors[0]} for {integrator}, got {finest_steps}"
+        )
+    solver = es.NewtonCG(tol=REFERENCE_TOL, max_iter=100, direct_max_dofs=direct_max_dofs)
     runs = []
-    for steps in (finest_steps // 4, finest_steps // 2, finest_steps):
-        run = energysim_trajectory(scene, steps, checkpoints, solver)
+    for divisor in divisors:
+        run = energysim_trajectory(scene, finest_steps // divisor, checkpoints, solver, integrator)
         if run.converged != run.steps:
             raise RuntimeError(
                 f"the reference left {run.steps - run.converged} of {run.steps} steps unconverged"
             )
         runs.append(run)
-    coarse = 2 * runs[1].positions - runs[0].positions
-    fine = 2 * runs[2].positions - runs[1].positions
+    if order == 2:
+        coarse, fine = runs[0].positions, runs[1].positions
+        return richardson(coarse, fine, 2), float((fine - coarse).norm(dim=-1).max()) / 3.0, runs
+    coarse = richardson(runs[0].positions, runs[1].positions, 1)
+    fine = richardson(runs[1].positions, runs[2].positions, 1)
     return fine, float((fine - coarse).norm(dim=-1).max()) / 3.0, runs
 
 
@@ -170,6 +238,7 @@ def energysim_row(tets: int, tol: float, run: Trajectory, reference: Tensor, not
     return Run(
         tets=tets,
         simulator=ENERGYSIM,
+        integrator=run.integrator,
         method=f"newton-cg tol {tol:g}",
         tol=tol,
         dt=CHECKPOINT_S / run.steps_per_checkpoint,
@@ -182,7 +251,8 @@ def energysim_row(tets: int, tol: float, run: Trajectory, reference: Tensor, not
         ratio=math.nan,
         ratio_vbd=math.nan,
         status=status_of(error, math.inf),
-        note=f"{run.hvps / run.steps:.0f} HVPs/step" + (f"; {note}" if note else ""),
+        note=f"{run.iterations / run.steps:.1f} Newton iterations, {run.hvps / run.steps:.0f} HVPs per step"
+        + (f"; {note}" if note else ""),
     )
 
 
@@ -230,14 +300,17 @@ class PeerCantilever:
         scene: the energysim scene whose mesh, masses and clamped vertices are copied.
         method: "semi-implicit" or "vbd".
         iterations: VBD iterations per step (ignored by the semi-implicit solver).
+        poissons_ratio: ν of the material (E is `YOUNGS_MODULUS`), as in the energysim scene.
     """
 
-    def __init__(self, scene: es.Scene, method: str, iterations: int = 10) -> None:
+    def __init__(
+        self, scene: es.Scene, method: str, iterations: int = 10, poissons_ratio: float = POISSONS_RATIO
+    ) -> None:
         import newton
         import warp as wp
 
         wp.config.quiet = True
-        mu, lam = lame_parameters(torch.tensor(YOUNGS_MODULUS), torch.tensor(POISSONS_RATIO))
+        mu, lam = lame_parameters(torch.tensor(YOUNGS_MODULUS), torch.tensor(poissons_ratio))
         if method == "semi-implicit":
             # Newton's semi-implicit tet force is Smith et al.'s paper form with (k_mu, k_lambda) = (μ', λ')
             k_mu, k_lambda, _ = (float(p) for p in smith_parameters(mu, lam))
@@ -315,6 +388,7 @@ def peer_run(
     return Run(
         tets=tets,
         simulator=PEER,
+        integrator="semi_implicit_euler" if peer.method == "semi-implicit" else "implicit_euler",
         method=method,
         tol=math.nan,
         dt=CHECKPOINT_S / steps,
@@ -392,18 +466,22 @@ def with_ratios(runs: list[Run]) -> list[Run]:
 
 def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run], dict[str, float]]:
     """All runs at one mesh size; the table's runs, the stable-step search, and the reference's numbers."""
-    scene = build_scene(SIZES[size])
+    scene = cantilever_scene(SIZES[size], args.poissons_ratio)
     tets = scene.mesh.num_elements
-    reference, estimate, reference_runs = reference_trajectory(scene, args.checkpoints, args.reference_steps)
+    reference, estimate, reference_runs = reference_trajectory(
+        scene, args.checkpoints, args.reference_steps, args.reference_integrator, args.direct_max_dofs
+    )
     reference_wall = sum(run.wall_s for run in reference_runs)
-    info = {"tets": tets, "reference_error_m": estimate, "wall_s": reference_wall}
+    info = {"tets": tets, "dofs": scene.num_dofs, "reference_error_m": estimate, "wall_s": reference_wall}
     print(f"{size}: reference in {reference_wall:.0f} s, its error ≈ {estimate:.1e} m", flush=True)
     runs: list[Run] = []
-    for tol in args.tols:
-        for steps in args.dts:
-            run = energysim_trajectory(scene, steps, args.checkpoints, es.NewtonCG(tol=tol))
-            runs.append(energysim_row(tets, tol, run, reference))
-            print(runs[-1], flush=True)
+    for integrator in args.integrators:
+        for tol in args.tols:
+            for steps in args.dts:
+                solver = es.NewtonCG(tol=tol, direct_max_dofs=args.direct_max_dofs)
+                run = energysim_trajectory(scene, steps, args.checkpoints, solver, integrator)
+                runs.append(energysim_row(tets, tol, run, reference))
+                print(runs[-1], flush=True)
     # the reference's own runs are energysim runs too, at small h (their error: their differences)
     for run in reference_runs:
         runs.append(energysim_row(tets, REFERENCE_TOL, run, reference, "a run of the reference"))
@@ -414,6 +492,7 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
             Run(
                 tets=tets,
                 simulator=PEER,
+                integrator="–",
                 method="–",
                 tol=math.nan,
                 dt=math.nan,
@@ -431,7 +510,7 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
         )
         print(f"the peer is not installed ({missing}); only energysim ran", flush=True)
         return with_ratios(runs), search, info
-    semi = PeerCantilever(scene, "semi-implicit")
+    semi = PeerCantilever(scene, "semi-implicit", poissons_ratio=args.poissons_ratio)
     largest, search = largest_stable_step(
         semi, args.checkpoints, reference, tets, args.search_start, args.accuracy_limit
     )
@@ -449,11 +528,52 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
             print(runs[-1], flush=True)
     for setting in args.vbd:
         steps, iterations = (int(part) for part in setting.split(":"))
-        vbd = PeerCantilever(scene, "vbd", iterations)
+        vbd = PeerCantilever(scene, "vbd", iterations, args.poissons_ratio)
         run = peer_run(vbd, steps, args.checkpoints, reference, args.repeats, tets, math.inf)
         runs.append(Run(**{**asdict(run), "note": "HOBAK neo-Hookean form"}))
         print(runs[-1], flush=True)
     return with_ratios(runs), search, info
+
+
+def observed_order(runs: list[Run], tets: int, integrator: str) -> float:
+    """Slope of log(error) against log(h) between the largest and the smallest h of energysim's runs with
+    `integrator` at `tets` and the tightest tolerance (the reference's own runs left out); NaN with fewer
+    than two such runs or a non-positive, non-finite error."""
+    ours = [
+        r
+        for r in runs
+        if r.tets == tets
+        and r.simulator == ENERGYSIM
+        and r.integrator == integrator
+        and "reference" not in r.note
+    ]
+    if not ours:
+        return math.nan
+    tightest = min(r.tol for r in ours)
+    tight = sorted((r for r in ours if r.tol == tightest), key=lambda r: r.dt)
+    if len(tight) < 2 or not all(0 < r.error_m < math.inf for r in (tight[0], tight[-1])):
+        return math.nan
+    return math.log(tight[-1].error_m / tight[0].error_m) / math.log(tight[-1].dt / tight[0].dt)
+
+
+def reference_text(args: argparse.Namespace) -> str:
+    """How the reference was computed and checked, for the markdown."""
+    steps = args.reference_steps
+    if args.reference_integrator == "tr_bdf2":
+        return (
+            f"Reference: energysim Newton–CG at tol {REFERENCE_TOL:g} m/s with TR-BDF2 (second order) at "
+            f"h = 1/{12 * steps // 2} and 1/{12 * steps} s, Richardson-extrapolated for order 2, "
+            "x_ref = (4 x(h) − x(2h))/3; its error is estimated conservatively as the largest "
+            "|x(h) − x(2h)|/3 over vertices and times, the error of the finer run itself, which the "
+            "extrapolation only reduces. It is checked by the convergence of the runs to it: implicit "
+            "Euler's errors fall at first order in h, TR-BDF2's at second (observed orders under the "
+            "table)."
+        )
+    return (
+        f"Reference: energysim Newton–CG at tol {REFERENCE_TOL:g} m/s with implicit Euler, Richardson-"
+        f"extrapolated for order 1 from h = 1/{12 * steps // 4}, 1/{12 * steps // 2} and 1/{12 * steps} s "
+        "(2 x(h/2) − x(h) twice over); its error is a third of the two extrapolations' largest difference."
+    )
 
 
 def markdown(
@@ -467,81 +587,93 @@ def markdown(
     missing = peer_missing()
     peer = f"not installed ({missing})" if missing else peer_versions()
     seconds = args.checkpoints * CHECKPOINT_S
+    integrators = " and ".join(args.integrators)
     lines = [
-        f"Cantilever from rest for {seconds:g} s (`bench_step.build_scene`: E = 1e5 Pa, ν = 0.3, "
-        "ρ = 1000 kg/m³), energysim (float64, Newton–CG) against Warp through `newton` "
-        f"({peer}; float32, CPU). error = largest vertex distance from the reference at t = 1/12, "
-        f"2/12, … s; reference: energysim Newton–CG at tol {REFERENCE_TOL:g} m/s, Richardson-"
-        f"extrapolated from h = 1/{12 * args.reference_steps // 4}, 1/{12 * args.reference_steps // 2} "
-        f"and 1/{12 * args.reference_steps} s. Wall time per simulated second: median of "
-        f"{args.repeats} runs for the peer, one run for energysim. ratio = energysim's wall time / "
-        "the fastest stable peer run whose error is at most energysim's (> 1: energysim is slower); "
-        "ratio VBD: the same against the peer's implicit integrator alone. "
-        f"torch threads {args.threads}, OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'unset')}; "
-        "Warp runs its CPU kernels on one thread. A shared 2-core machine: load "
-        f"average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end; treat times as noisy.",
+        f"Cantilever from rest for {seconds:g} s (`bench_step.build_scene`: E = 1e5 Pa, "
+        f"ν = {args.poissons_ratio:g}, ρ = 1000 kg/m³), energysim (float64, Newton–CG; integrators "
+        f"{integrators}) against Warp through `newton` ({peer}; float32, CPU). error = largest vertex "
+        f"distance from the reference at t = 1/12, 2/12, … s. {reference_text(args)} Newton–CG solves "
+        f"its linear systems directly up to {args.direct_max_dofs} DOFs (`direct_max_dofs`; "
+        '`direct="auto"` picks dense Cholesky or the block-tridiagonal level solve), by CG above. '
+        "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step). "
+        f"Wall time per simulated second: median of {args.repeats} runs for the peer, one run for "
+        "energysim. ratio = energysim's wall time / the fastest stable peer run whose error is at most "
+        "energysim's (> 1: energysim is slower); ratio VBD: the same against the peer's implicit "
+        f"integrator alone. torch threads {args.threads}, OMP_WAIT_POLICY "
+        f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}; Warp runs its CPU kernels on one thread. A shared "
+        f"2-core machine: load average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end; treat "
+        "times as noisy.",
         "",
     ]
     for ref in references:
         lines.append(
-            f"- {ref['tets']} tets: the reference's error ≈ {ref['reference_error_m']:.1e} m (from its two "
-            f"extrapolations); {ref['wall_s']:.0f} s to compute. Its three runs are in the table too "
-            "(tol 1e-09): their errors are their distances from the extrapolation."
+            f"- {ref['tets']} tets ({ref['dofs']} DOFs): the reference's error ≤ "
+            f"{ref['reference_error_m']:.1e} m (estimated as above); {ref['wall_s']:.0f} s to compute. "
+            f"Its runs are in the table too (tol {REFERENCE_TOL:g}): their errors are their distances "
+            "from the extrapolation."
         )
     lines += [
         "",
-        "| tets | simulator | method | h (s) | wall s / simulated s | error (m) | final error (m) "
-        "| converged | ratio | ratio VBD | status | note |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+        "| tets | simulator | integrator | method | h (s) | wall s / simulated s | error (m) "
+        "| final error (m) | converged | ratio | ratio VBD | status | note |",
+        "|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r in runs:
         lines.append(
-            f"| {r.tets} | {r.simulator} | {r.method} | {r.dt:.3g} | {r.wall_s_per_sim_s:.3g} | "
-            f"{r.error_m:.2e} | {r.final_error_m:.2e} | {r.converged} | {r.ratio:.3g} | {r.ratio_vbd:.3g} | "
-            f"{r.status} | "
-            f"{r.note} |"
+            f"| {r.tets} | {r.simulator} | {r.integrator} | {r.method} | {r.dt:.3g} | "
+            f"{r.wall_s_per_sim_s:.3g} | {r.error_m:.2e} | {r.final_error_m:.2e} | {r.converged} | "
+            f"{r.ratio:.3g} | {r.ratio_vbd:.3g} | {r.status} | {r.note} |"
         )
     for tets in dict.fromkeys(r.tets for r in runs):
-        best = [r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and math.isfinite(r.ratio)]
-        if best:
-            winner = min(best, key=lambda r: r.ratio)
+        peer = [r for r in runs if r.tets == tets and r.note == "largest stable step" and r.status == "ok"]
+        orders = []
+        for integrator in args.integrators:
+            ours = [
+                r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and r.integrator == integrator
+            ]
+            lines += ["", f"**{integrator}** ({tets} tets):"]
+            best = [r for r in ours if math.isfinite(r.ratio)]
+            if best:
+                winner = min(best, key=lambda r: r.ratio)
+                lines.append(
+                    f"energysim's best setting by this measure: {winner.method} at h = {winner.dt:.3g} s, "
+                    f"{winner.wall_s_per_sim_s:.3g} s per simulated second with error "
+                    f"{winner.error_m:.2e} m, {winner.ratio:.3g}× the peer's time at equal or smaller "
+                    "error."
+                )
+            against_vbd = [r for r in ours if math.isfinite(r.ratio_vbd)]
+            if against_vbd:
+                winner = min(against_vbd, key=lambda r: r.ratio_vbd)
+                lines.append(
+                    f"Against the peer's implicit integrator (VBD) alone, energysim's best is "
+                    f"{winner.method} at h = {winner.dt:.3g} s: {winner.ratio_vbd:.3g}× the fastest VBD "
+                    "run with no smaller error (< 1: energysim is faster)."
+                )
+            if peer:
+                matched = [r for r in ours if r.error_m <= peer[0].error_m]
+                if matched:
+                    cheapest = min(matched, key=lambda r: r.wall_s_per_sim_s)
+                    lines.append(
+                        f"At the peer's error at its largest stable step ({peer[0].error_m:.2e} m, "
+                        f"{peer[0].wall_s_per_sim_s:.3g} s per simulated second), energysim's cheapest "
+                        f"run with no larger error is {cheapest.method} at h = {cheapest.dt:.3g} s: "
+                        f"{cheapest.wall_s_per_sim_s:.3g} s per simulated second, "
+                        f"{cheapest.wall_s_per_sim_s / peer[0].wall_s_per_sim_s:.3g}× the peer's."
+                    )
+                else:
+                    lines.append(
+                        "No energysim run reached the peer's error at its largest stable step "
+                        f"({peer[0].error_m:.2e} m)."
+                    )
+            order = observed_order(runs, tets, integrator)
+            if math.isfinite(order):
+                orders.append(f"{integrator} {order:.2f} (expected {INTEGRATOR_ORDER[integrator]})")
+        if orders:
             lines += [
                 "",
-                f"energysim's best setting by this measure ({tets} tets): {winner.method} at h = "
-                f"{winner.dt:.3g} s, {winner.wall_s_per_sim_s:.3g} s per simulated second with error "
-                f"{winner.error_m:.2e} m, {winner.ratio:.3g}× the peer's time at equal or smaller error.",
+                f"Observed order of convergence to the reference ({tets} tets; tightest tolerance, "
+                "largest against smallest h): " + ", ".join(orders) + ".",
             ]
-        against_vbd = [
-            r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and math.isfinite(r.ratio_vbd)
-        ]
-        if against_vbd:
-            winner = min(against_vbd, key=lambda r: r.ratio_vbd)
-            lines.append(
-                f"Against the peer's implicit integrator (VBD) alone, energysim's best is {winner.method} at "
-                f"h = {winner.dt:.3g} s: {winner.ratio_vbd:.3g}× the fastest VBD run with no smaller error "
-                "(< 1: energysim is faster)."
-            )
-        peer = [r for r in runs if r.tets == tets and r.note == "largest stable step" and r.status == "ok"]
-        if peer:
-            matched = [
-                r
-                for r in runs
-                if r.tets == tets and r.simulator == ENERGYSIM and r.error_m <= peer[0].error_m
-            ]
-            if matched:
-                cheapest = min(matched, key=lambda r: r.wall_s_per_sim_s)
-                lines.append(
-                    f"At the peer's error at its largest stable step ({peer[0].error_m:.2e} m, "
-                    f"{peer[0].wall_s_per_sim_s:.3g} s per simulated second), energysim's cheapest run "
-                    f"with no larger error is {cheapest.method} at h = {cheapest.dt:.3g} s: "
-                    f"{cheapest.wall_s_per_sim_s:.3g} s per simulated second, "
-                    f"{cheapest.wall_s_per_sim_s / peer[0].wall_s_per_sim_s:.3g}× the peer's."
-                )
-            else:
-                lines.append(
-                    "No energysim run reached the peer's error at its largest stable step "
-                    f"({peer[0].error_m:.2e} m)."
-                )
     if search:
         lines += [
             "",
@@ -560,28 +692,33 @@ def markdown(
 
 
 def plot(runs: list[Run], path: Path) -> None:
-    """Error against wall time per simulated second, one line per simulator and method."""
+    """Error against wall time per simulated second, one line per simulator, integrator and method."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     figure, ax = plt.subplots(figsize=(7, 5))
-    for key in dict.fromkeys((r.tets, r.simulator, r.method) for r in runs):
+    for key in dict.fromkeys((r.tets, r.simulator, r.integrator, r.method) for r in runs):
         mine = [
             r
             for r in runs
-            if (r.tets, r.simulator, r.method) == key
+            if (r.tets, r.simulator, r.integrator, r.method) == key
             and math.isfinite(r.error_m)
             and math.isfinite(r.wall_s_per_sim_s)
         ]
         if mine:
             mine.sort(key=lambda r: r.dt)
+            tets, simulator, integrator, method = key
+            # energysim: solid for implicit Euler, dash-dotted for TR-BDF2; the peer dashed
+            style = {"implicit_euler": "o-", "tr_bdf2": "^-."}.get(integrator, "o-")
             ax.loglog(
                 [r.wall_s_per_sim_s for r in mine],
                 [max(r.error_m, 1e-9) for r in mine],
-                "o-" if key[1] == ENERGYSIM else "s--",
-                label=f"{key[1]} {key[2]} ({key[0]} tets)",
+                style if simulator == ENERGYSIM else "s--",
+                label=f"{simulator} {integrator} {method} ({tets} tets)"
+                if simulator == ENERGYSIM
+                else f"{simulator} {method} ({tets} tets)",
             )
     ax.set(
         xlabel="wall time per simulated second (s)",
@@ -589,29 +726,40 @@ def plot(runs: list[Run], path: Path) -> None:
         title="Cantilever: work against precision",
     )
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     figure.tight_layout()
     save_figure(figure, path)
 
 
 def check(runs: list[Run]) -> None:
-    """Physical sense: implicit Euler's error shrinks about in proportion to h; the peer's runs at its
-    largest stable step are stable."""
+    """Physical sense: each integrator's error shrinks at its order in h (implicit Euler ≈ 1, TR-BDF2
+    ≈ 2), which also checks the reference; the peer's runs at its largest stable step are stable."""
+    # TR-BDF2's coarse steps are pre-asymptotic on short runs (over 1/6 s its order is 1.4 from h = 1/24
+    # to 1/48 s and 1.8 from 1/120 to 1/240 s), so its lower bound only asks for clearly above first order
+    bounds = {1: (0.7, 1.3), 2: (1.3, 2.6)}
     for tets in dict.fromkeys(r.tets for r in runs):
-        ours = [r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and "reference" not in r.note]
-        tightest = min(r.tol for r in ours)
-        tight = sorted((r for r in ours if r.tol == tightest), key=lambda r: r.dt)
-        if len(tight) >= 2:
-            order = math.log(tight[-1].error_m / tight[0].error_m) / math.log(tight[-1].dt / tight[0].dt)
-            assert 0.7 < order < 1.3, (
-                f"implicit Euler's observed order is {order:.2f} at {tets} tets, not ≈ 1"
+        for integrator in dict.fromkeys(r.integrator for r in runs if r.simulator == ENERGYSIM):
+            order = observed_order(runs, tets, integrator)
+            expected = INTEGRATOR_ORDER[integrator]
+            low, high = bounds[expected]
+            assert not math.isfinite(order) or low < order < high, (
+                f"{integrator}'s observed order is {order:.2f} at {tets} tets, not ≈ {expected}"
             )
         largest = [r for r in runs if r.tets == tets and r.note.startswith("largest stable step")]
         for r in largest:
             assert r.status == "ok", f"the peer's largest stable step is {r.status} on its timed run"
 
 
+def poissons_ratio(text: str) -> float:
+    """ν from the command line: it must lie in (−1, 0.5) for λ to be finite and positive-definite."""
+    value = float(text)
+    if not -1.0 < value < 0.5:
+        raise argparse.ArgumentTypeError(f"Poisson's ratio must lie in (-1, 0.5), got {text}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> list[Run]:
+    """Run the benchmark; write CSV, markdown and plot to `--out`; return every run."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["1k"], choices=list(SIZES))
     parser.add_argument("--checkpoints", type=int, default=12, help="simulated time in units of 1/12 s")
@@ -624,10 +772,36 @@ def main(argv: list[str] | None = None) -> list[Run]:
     )
     parser.add_argument("--tols", nargs="+", type=float, default=list(DEFAULT_TOLS), help="m/s")
     parser.add_argument(
+        "--integrators",
+        nargs="+",
+        choices=list(es.INTEGRATORS),
+        default=list(es.INTEGRATORS),
+        help="energysim's time integrators; every h and tolerance runs with each",
+    )
+    parser.add_argument(
+        "--reference-integrator",
+        choices=list(INTEGRATOR_ORDER),
+        default="tr_bdf2",
+        help="tr_bdf2: two runs, extrapolated for order 2; implicit_euler: three runs, for order 1",
+    )
+    parser.add_argument(
         "--reference-steps",
         type=int,
-        default=320,
-        help="steps per 1/12 s of the finest reference run (multiple of 4)",
+        default=None,
+        help="steps per 1/12 s of the finest reference run (default 160 for tr_bdf2, even; 320 for "
+        "implicit_euler, a multiple of 4)",
+    )
+    parser.add_argument(
+        "--direct-max-dofs",
+        type=int,
+        default=DEFAULT_DIRECT_MAX_DOFS,
+        help="Newton–CG solves systems of at most this many DOFs directly, larger ones by CG (0: CG only)",
+    )
+    parser.add_argument(
+        "--poissons-ratio",
+        type=poissons_ratio,
+        default=POISSONS_RATIO,
+        help="ν of both simulators' material (0.49: nearly incompressible)",
     )
     parser.add_argument(
         "--search-start", type=int, default=256, help="steps per 1/12 s to start the search at"
@@ -649,6 +823,8 @@ def main(argv: list[str] | None = None) -> list[Run]:
     parser.add_argument("--out", type=Path, default=Path("out/bench_peers"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
+    if args.reference_steps is None:
+        args.reference_steps = DEFAULT_REFERENCE_STEPS[args.reference_integrator]
     torch.set_num_threads(args.threads)
     load_start = os.getloadavg()
     runs, search, references = [], [], []

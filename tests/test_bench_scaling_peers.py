@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import energysim as es
+from energysim.fem.materials import lame_parameters, smith_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
@@ -53,12 +54,23 @@ def test_slopes_fit_only_the_sizes_from_the_threshold():
     assert fit["memory_slope"] == pytest.approx(1.0)
 
 
+def test_richardson_cancels_the_leading_error_term_of_either_order():
+    exact = torch.tensor([[0.3, -1.2, 2.0]], dtype=torch.float64)
+    for order in (1, 2):
+        h = 0.01
+        coarse, fine = exact + 5.0 * (2 * h) ** order, exact + 5.0 * h**order
+        assert torch.allclose(bench_peers.richardson(coarse, fine, order), exact, atol=1e-14, rtol=0)
+
+
 def test_richardson_reference_is_exact_for_free_fall():
     # implicit Euler's free fall is x_n = x_0 − g h² n(n+1)/2: its error −g h t/2 is exactly linear in h,
     # so the extrapolation must give the exact x_0 − g t²/2
     mesh = es.TetMesh.box(size=(0.2, 0.2, 0.2), cells=(1, 1, 1))
     scene = es.Scene(mesh, density=1000.0, gravity=(0.0, -9.81, 0.0))
-    reference, estimate, runs = bench_peers.reference_trajectory(scene, checkpoints=2, finest_steps=8)
+    reference, estimate, runs = bench_peers.reference_trajectory(
+        scene, checkpoints=2, finest_steps=8, integrator="implicit_euler"
+    )
+    assert [run.integrator for run in runs] == ["implicit_euler"] * 3
     times = torch.arange(3, dtype=torch.float64) * bench_peers.CHECKPOINT_S
     exact = (
         mesh.vertices[None]
@@ -71,6 +83,33 @@ def test_richardson_reference_is_exact_for_free_fall():
         h = bench_peers.CHECKPOINT_S / run.steps_per_checkpoint
         error, final = bench_peers.errors(run.positions, reference)
         assert error == final == pytest.approx(9.81 * h * 2 * bench_peers.CHECKPOINT_S / 2, rel=1e-6)
+
+
+def test_tr_bdf2_reference_is_exact_for_free_fall_and_its_runs_too():
+    # TR-BDF2 is second order: both its stages integrate a constant acceleration exactly, so each run,
+    # the extrapolation and the error estimate (their difference) are exact up to rounding
+    mesh = es.TetMesh.box(size=(0.2, 0.2, 0.2), cells=(1, 1, 1))
+    scene = es.Scene(mesh, density=1000.0, gravity=(0.0, -9.81, 0.0))
+    reference, estimate, runs = bench_peers.reference_trajectory(scene, checkpoints=2, finest_steps=8)
+    assert [(run.integrator, run.steps_per_checkpoint) for run in runs] == [("tr_bdf2", 4), ("tr_bdf2", 8)]
+    times = torch.arange(3, dtype=torch.float64) * bench_peers.CHECKPOINT_S
+    exact = (
+        mesh.vertices[None]
+        - torch.tensor([0.0, 9.81, 0.0], dtype=torch.float64) * times[:, None, None] ** 2 / 2
+    )
+    assert float((reference - exact).abs().max()) < 1e-9
+    assert estimate < 1e-9
+    for run in runs:
+        assert float((run.positions - exact).abs().max()) < 1e-9
+    with pytest.raises(ValueError, match="multiple of 2"):
+        bench_peers.reference_trajectory(scene, checkpoints=1, finest_steps=5)
+
+
+def test_poissons_ratio_reaches_the_energysim_material():
+    scene = bench_peers.cantilever_scene(bench_peers.SIZES["tiny"], 0.49)
+    (material,) = [term for term in scene.terms if isinstance(term, es.NeoHookean)]
+    assert float(material.poissons_ratio) == pytest.approx(0.49)
+    assert float(material.youngs_modulus) == bench_peers.YOUNGS_MODULUS
 
 
 @pytest.mark.heavy
@@ -118,18 +157,41 @@ def test_bench_peers_runs_energysim_alone_and_says_the_peer_is_missing(tmp_path,
         ["--sizes", "tiny", "--checkpoints", "3", "--reference-steps", "40", "--dts", "2", "4"]
         + ["--tols", "1e-6", "--threads", "1", "--no-plot", "--out", str(tmp_path)]
     )
-    ours = sorted(
-        (r for r in runs if r.simulator == bench_peers.ENERGYSIM and r.tol == 1e-6), key=lambda r: r.dt
-    )
-    assert len(ours) == 2
+
+    def ours(integrator: str) -> list[bench_peers.Run]:
+        return sorted(
+            (
+                r
+                for r in runs
+                if r.simulator == bench_peers.ENERGYSIM and r.integrator == integrator and r.tol == 1e-6
+            ),
+            key=lambda r: -r.dt,
+        )
+
+    euler, tr_bdf2 = ours("implicit_euler"), ours("tr_bdf2")
+    assert len(euler) == len(tr_bdf2) == 2
     (note,) = [r for r in runs if r.simulator == bench_peers.PEER]
     assert note.status == "not installed" and "newton" in note.note
-    assert all(r.converged == f"{r.steps_per_checkpoint * 3}/{r.steps_per_checkpoint * 3}" for r in ours)
-    # implicit Euler is first order: halving h halves the error against the extrapolated reference
-    assert ours[1].error_m / ours[0].error_m == pytest.approx(2.0, rel=0.25)
-    # its free-fall part alone is g h t / 2 at t = 1/4 s; bending adds to it, not orders of magnitude
-    assert 0.2 < ours[1].error_m / (9.81 * ours[1].dt * 0.25 / 2) < 5.0
-    assert "not installed" in (tmp_path / "bench_peers.md").read_text()
+    for r in euler + tr_bdf2:
+        assert r.converged == f"{r.steps_per_checkpoint * 3}/{r.steps_per_checkpoint * 3}"
+    # against the extrapolated TR-BDF2 reference, halving h halves implicit Euler's error (first order)
+    # and quarters TR-BDF2's (second order): the reference converges where both say it should
+    assert euler[0].error_m / euler[1].error_m == pytest.approx(2.0, rel=0.25)
+    assert tr_bdf2[0].error_m / tr_bdf2[1].error_m == pytest.approx(4.0, rel=0.3)
+    # implicit Euler's free-fall part alone is g h t / 2 at t = 1/4 s; bending adds to it, not orders of
+    # magnitude
+    assert 0.2 < euler[0].error_m / (9.81 * euler[0].dt * 0.25 / 2) < 5.0
+    # the reference's own runs are TR-BDF2 at 20 and 40 steps per 1/12 s, tol 1e-9
+    reference = [r for r in runs if "a run of the reference" in r.note]
+    assert [(r.integrator, r.steps_per_checkpoint, r.tol) for r in reference] == [
+        ("tr_bdf2", 20, bench_peers.REFERENCE_TOL),
+        ("tr_bdf2", 40, bench_peers.REFERENCE_TOL),
+    ]
+    table = (tmp_path / "bench_peers.md").read_text()
+    assert "not installed" in table and "Richardson-extrapolated for order 2" in table
+    assert "Observed order" in table and "implicit_euler" in table and "tr_bdf2" in table
+    with open(tmp_path / "bench_peers.csv") as handle:
+        assert {row["integrator"] for row in csv.DictReader(handle)} == {"implicit_euler", "tr_bdf2", "–"}
 
 
 @pytest.mark.heavy
@@ -151,6 +213,8 @@ def test_bench_peers_finds_a_stable_accurate_step_for_the_peer(tmp_path):
         ]
     )
     peer = {r.note.split(";")[0]: r for r in runs if r.simulator == bench_peers.PEER}
+    integrators = {r.integrator for r in runs if r.simulator == bench_peers.ENERGYSIM}
+    assert integrators == {"implicit_euler", "tr_bdf2"}
     largest = peer["largest stable step"]
     assert largest.status == "ok" and largest.error_m <= 0.01
     # the semi-implicit (symplectic) Euler integrator is first order too
@@ -158,3 +222,21 @@ def test_bench_peers_finds_a_stable_accurate_step_for_the_peer(tmp_path):
     with open(tmp_path / "bench_peers_search.csv") as handle:
         search = list(csv.DictReader(handle))
     assert search[0]["status"] == "ok" and any(row["status"] != "ok" for row in search)
+    # the headlines come per integrator, each against the peer's largest stable step
+    table = (tmp_path / "bench_peers.md").read_text()
+    assert (
+        table.count("At the peer's error at its largest stable step")
+        + table.count("No energysim run reached the peer's error")
+        == 2
+    )
+
+
+def test_poissons_ratio_reaches_the_peer_material():
+    pytest.importorskip("newton")
+    scene = bench_peers.cantilever_scene(bench_peers.SIZES["tiny"], 0.49)
+    mu, lam = lame_parameters(torch.tensor(bench_peers.YOUNGS_MODULUS), torch.tensor(0.49))
+    k_mu, k_lambda, _ = (float(p) for p in smith_parameters(mu, lam))
+    peer = bench_peers.PeerCantilever(scene, "semi-implicit", poissons_ratio=0.49)
+    materials = peer.model.tet_materials.numpy()
+    assert materials[:, 0] == pytest.approx(k_mu, rel=1e-6)
+    assert materials[:, 1] == pytest.approx(k_lambda, rel=1e-6)
