@@ -127,10 +127,12 @@ def vec_env(settings: Settings, num_envs: int) -> CreatureVecEnv:
 
 
 def build_model(settings: Settings, venv: CreatureVecEnv) -> Any:
-    """A fresh SB3 PPO on `venv` with the run's hyperparameters (seeded with `settings.seed`)."""
+    """A fresh SB3 PPO on `venv` with the run's hyperparameters (seeded with `settings.seed`), and a
+    logger that writes nothing: the run's own curve and checkpoints are its record."""
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
 
-    return PPO(
+    model = PPO(
         "MlpPolicy",
         venv,
         n_steps=settings.n_steps,
@@ -146,6 +148,10 @@ def build_model(settings: Settings, venv: CreatureVecEnv) -> Any:
         device="cpu",
         verbose=0,
     )
+    # SB3's default logger makes a fresh folder under the system temp directory on every learn()
+    # call, even with no output format, and leaves it there empty
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
 
 
 def controller(model: Any) -> Any:

@@ -131,6 +131,58 @@ def _rounding(x: Tensor, energy: Tensor) -> Tensor:
     return 64 * torch.finfo(x.dtype).eps * energy.abs()
 
 
+# Perturbed evaluations `energy_noise` takes. With E(x) itself that is 5 values, whose spread is
+# 2.3 standard deviations of the noise on average and above 1.0 in 95 % of measurements; the
+# difference of two noisy values that a line search compares has √2 of them, and exceeds
+# `NOISE_ALLOWANCE` spreads in about 0.2 % of comparisons (2.5 % for 2 spreads).
+NOISE_SAMPLES = 4
+NOISE_ALLOWANCE = 4.0
+
+
+def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int = NOISE_SAMPLES) -> Tensor:
+    """The rounding noise of E near `x`, measured: its spread over positions a few ulps away, `[B]`, in J.
+
+    Every free coordinate moves by a fixed pattern of −2 … 2 times eps·|x|, the size of the rounding
+    of the positions a line search visits, so the smooth part of E changes by at most 2 eps Σ|∇E||x|:
+    the spread is how far E itself can be trusted. It is measured because the estimates from the
+    magnitudes of what is summed miss where the cancellation happens. In a stiff rotated element the
+    neo-Hookean energy is a sum of terms of size μV|F − I|² that cancel to a far smaller energy, inside
+    the element. On the E = 1e8 Pa drop of `scripts/stability_matrix.py`, where Newton–CG stalled at
+    2.1e-5 m/s, the step objective is −1.04e-2 J and its noise has a standard deviation of 6e-13 J,
+    4000 times 64 ulps of |E| (1.5e-16 J); eps times the sum of the terms' magnitudes (inertia,
+    gravity, elasticity, barrier, friction) is 1.8e-17 J, eps Σ|∇E||x| is 1.5e-20 J (the total force
+    vanishes at the minimum), and eps Σ|∇E_i||x| over the terms i is 6e-15 J (the elastic forces of a
+    stiff body are small, not its energy's terms). A bound from the material's moduli, eps Σ(μ + λ)V
+    (1.7e-10 J there), holds for any rotation but is 300 times the noise at this one, and would leave
+    to the derivatives every step whose predicted decrease lies below it.
+
+    Args:
+        objective: the objective whose `energy` is measured (each sample counts as an evaluation).
+        x: positions `[B, n, d]`, in m; energy: E(x) `[B]`, in J, one of the spread's values.
+        samples: perturbed evaluations.
+
+    Returns:
+        the largest minus the smallest finite value of E among them, per batch entry (0 if none is).
+    """
+    # a fixed pattern from a private generator: measuring must not draw on the global random state
+    generator = torch.Generator().manual_seed(0)
+    patterns = torch.randint(-2, 3, (samples, *x.shape[1:]), generator=generator).to(x)
+    unit = torch.finfo(x.dtype).eps * x.abs() * objective.free[:, None].to(x.dtype)
+    values = [energy] + [objective.energy(x + pattern * unit) for pattern in patterns]
+    stacked = torch.stack(values)
+    finite = torch.isfinite(stacked)
+    largest = torch.where(finite, stacked, -torch.inf).amax(dim=0)
+    smallest = torch.where(finite, stacked, torch.inf).amin(dim=0)
+    return torch.where(largest >= smallest, largest - smallest, torch.zeros_like(energy))
+
+
+def _noise_floor(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
+    """The allowance for rounding in an Armijo test from `x`, `[B]`, in J: 64 ulps of |E|, or the
+    measured noise of E (`energy_noise`) with `NOISE_ALLOWANCE`, whichever is larger."""
+    noise = NOISE_ALLOWANCE * energy_noise(objective, x, energy)
+    return torch.maximum(_rounding(x, energy), noise)
+
+
 def _sufficient_decrease(
     energy: Tensor, trial: Tensor, step: Tensor, slope: Tensor, rounding: Tensor, constant: float
 ) -> Tensor:
@@ -147,7 +199,8 @@ class LineStep:
         energy: E there `[B]`, in J.
         gradient: ∇E there `[B, n, d]`, in N.
         residual: the velocity residual there `[B]`, in m/s.
-        unjudged: entries taken whole because the energy could not judge the step `[B]`.
+        unjudged: entries taken whole because neither the energy nor its slope along the step could
+            judge it `[B]`.
     """
 
     step: Tensor
@@ -156,6 +209,13 @@ class LineStep:
     gradient: Tensor
     residual: Tensor
     unjudged: Tensor
+
+
+def _slope_decrease(slope: Tensor, trial_slope: Tensor, constant: float) -> Tensor:
+    # Armijo on the trapezoidal estimate ½t(φ'(0) + φ'(t)) of the energy change, exact for a
+    # quadratic φ. Directional derivatives carry none of the energy's cancellation: it is how a
+    # step is judged when the energy change is below the energy's noise.
+    return 0.5 * (slope + trial_slope) <= constant * slope
 
 
 def line_step(
@@ -171,27 +231,75 @@ def line_step(
 
     Starts from the largest fraction every term allows (`objective.max_step`). That first trial is
     evaluated with its gradient, which the solver needs next anyway: when every entry accepts it (the
-    common case near a minimum), the search costs no energy evaluation of its own. Otherwise it
-    backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
+    common case near a minimum), the search costs no energy evaluation of its own. Otherwise the
+    energy's rounding noise is measured (`energy_noise`) and the trial judged again with that
+    allowance. Where even the trial's predicted decrease is below the noise, the energy cannot judge
+    the step, and the directional derivatives at both ends do instead (the trapezoidal estimate of
+    the change, exact for a quadratic, which the energy is on that scale); a step that overshoots
+    by that estimate is replaced by the minimiser of the quadratic. A step neither can judge is taken
+    whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
+    (`backtracking_line_search`) and evaluates the gradient where it stopped.
     """
     initial = objective.max_step(x, direction)
     slope = (gradient * direction).sum(dim=(-1, -2))
     rounding = _rounding(x, energy)
+    measured = False
+
+    def armijo(trial: Tensor, step: Tensor) -> Tensor:
+        return _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
+
     unjudged = -slope * initial <= rounding
     trial_x = x + initial[:, None, None] * direction
     trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
-    decrease = _sufficient_decrease(energy, trial_energy, initial, slope, rounding, sufficient_decrease)
-    accepted = unjudged | decrease
-    if bool(accepted.all()):
+    decrease = armijo(trial_energy, initial)
+    if not bool(decrease.all()):
+        # the trial may have failed on rounding alone; only now is the noise worth its evaluations
+        rounding, measured = _noise_floor(objective, x, energy), True
+        unjudged = -slope * initial <= rounding
+        decrease = armijo(trial_energy, initial)
+    trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
+    slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
+    overshot = unjudged & ~slope_decrease & (slope < 0) & (trial_slope > slope)
+    if bool(overshot.any()):
+        # the minimiser of the quadratic through φ'(0) and φ'(t): below t/2 where the trapezoid
+        # refused t, so inside the admissible segment
+        curvature = torch.where(overshot, trial_slope - slope, torch.ones_like(slope))
+        initial = torch.where(overshot, -initial * slope / curvature, initial)
+        trial_x = x + initial[:, None, None] * direction
+        trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
+        trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
+        slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
+        decrease = armijo(trial_energy, initial)
+        if not measured and not bool(decrease.all()):
+            rounding = _noise_floor(objective, x, energy)
+            unjudged = -slope * initial <= rounding
+            decrease = armijo(trial_energy, initial)
+    # the energy cannot tell these from no change: their derivatives can
+    judged = unjudged & decrease & slope_decrease
+    if bool((unjudged | decrease).all()):
         return LineStep(
-            initial, trial_x, trial_energy, trial_gradient, objective.residual(trial_gradient), unjudged
+            initial,
+            trial_x,
+            trial_energy,
+            trial_gradient,
+            objective.residual(trial_gradient),
+            unjudged & ~judged,
         )
     step, _, unjudged = backtracking_line_search(
-        objective, x, energy, gradient, direction, initial, sufficient_decrease=sufficient_decrease
+        objective,
+        x,
+        energy,
+        gradient,
+        direction,
+        initial,
+        sufficient_decrease=sufficient_decrease,
+        rounding=rounding,
     )
     x_new = x + step[:, None, None] * direction
     new_energy, new_gradient = objective.energy_and_gradient(x_new)
-    return LineStep(step, x_new, new_energy, new_gradient, objective.residual(new_gradient), unjudged)
+    return LineStep(
+        step, x_new, new_energy, new_gradient, objective.residual(new_gradient), unjudged & ~judged
+    )
 
 
 def backtracking_line_search(
@@ -204,16 +312,19 @@ def backtracking_line_search(
     *,
     sufficient_decrease: float = 1e-4,
     max_halvings: int = 40,
+    rounding: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
-    Near convergence the energy change falls below the energy's rounding error, so a decrease
-    within a few ulps of |E| counts as no increase; and where even the full step's predicted
-    decrease is below that level, the energy cannot judge the step at all: it is taken whole and
-    flagged, so that the caller can judge it by the gradient instead.
+    Near convergence the energy change falls below the energy's rounding error, so a rise within
+    that error counts as no increase; and where even the full step's predicted decrease is below
+    it, the energy cannot judge the step at all: it is taken whole and flagged, so that the caller
+    can judge it by the gradient instead. The error is the larger of 64 ulps of |E| and the noise
+    of E measured near `x` (`energy_noise`), which is far larger for stiff rotated bodies.
 
     Args:
         x, gradient, direction: shape `[B, n, d]`; energy, initial_step: shape `[B]`.
+        rounding: that allowance `[B]` in J, if the caller has measured it already.
 
     Returns:
         step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
@@ -221,7 +332,8 @@ def backtracking_line_search(
     """
     slope = (gradient * direction).sum(dim=(-1, -2))
     step = initial_step.clone()
-    rounding = _rounding(x, energy)
+    if rounding is None:
+        rounding = _noise_floor(objective, x, energy)
     unjudged = -slope * initial_step <= rounding
     accepted = unjudged.clone()
     new_energy = energy.clone()
