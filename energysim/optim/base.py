@@ -211,6 +211,16 @@ class LineStep:
     unjudged: Tensor
 
 
+# A predicted decrease above this fraction of |E| is far above any rounding noise measured (the
+# worst, a stiff rotated body, is ~1e-10 |E|): a trial that fails there fails on its merits, and the
+# noise is not measured (it costs `NOISE_SAMPLES` energy evaluations).
+NOISE_RELEVANT_DECREASE = 1e-6
+
+
+def _noise_may_matter(energy: Tensor, slope: Tensor, step: Tensor) -> Tensor:
+    return -slope * step <= NOISE_RELEVANT_DECREASE * energy.abs()
+
+
 def _slope_decrease(slope: Tensor, trial_slope: Tensor, constant: float) -> Tensor:
     # Armijo on the trapezoidal estimate ½t(φ'(0) + φ'(t)) of the energy change, exact for a
     # quadratic φ. Directional derivatives carry none of the energy's cancellation: it is how a
@@ -252,7 +262,7 @@ def line_step(
     trial_x = x + initial[:, None, None] * direction
     trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
     decrease = armijo(trial_energy, initial)
-    if not bool(decrease.all()):
+    if not bool((decrease | ~_noise_may_matter(energy, slope, initial)).all()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = _noise_floor(objective, x, energy), True
         unjudged = -slope * initial <= rounding
