@@ -51,7 +51,9 @@ class Scene(nn.Module):
         self.dt = dt
         self.integrator = integrator
         if vertex_mass is None:
-            if not (math.isfinite(density) and density > 0):
+            # density may be a tensor that requires grad (material identification): check its value
+            checked = torch.as_tensor(density).detach()
+            if not bool(torch.isfinite(checked).all() & (checked > 0).all()):
                 raise ValueError(f"density must be finite and > 0 kg/m^3, got {density}")
             vertex_mass = density * mesh.vertex_rest_volume()
         vertex_mass = torch.as_tensor(vertex_mass, dtype=torch.float64)
