@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import pytest
 import torch
@@ -43,3 +44,14 @@ def rigid_alignment_error(x: torch.Tensor, rest: torch.Tensor) -> float:
     d[-1] = torch.sign(torch.linalg.det(u @ vt))
     rotation = u @ torch.diag(d) @ vt
     return float(((rc @ rotation - xc) ** 2).sum(-1).mean().sqrt())
+
+
+@pytest.fixture(scope="module")
+def one_thread() -> Iterator[None]:
+    """One torch thread for a module (`pytestmark = pytest.mark.usefixtures("one_thread")`): meshes this
+    small gain nothing from intra-op threads, and on a busy machine torch's thread pool can make a
+    15 ms step take 700 ms."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -62,6 +62,13 @@ def test_richardson_cancels_the_leading_error_term_of_either_order():
         assert torch.allclose(bench_peers.richardson(coarse, fine, order), exact, atol=1e-14, rtol=0)
 
 
+def free_fall(mesh: es.TetMesh, checkpoints: int) -> torch.Tensor:
+    """The rest positions in free fall from rest (g = 9.81 m/s²) at t = 0, 1/12, … s: `[C + 1, n, 3]`."""
+    times = torch.arange(checkpoints + 1, dtype=torch.float64) * bench_peers.CHECKPOINT_S
+    fall = torch.tensor([0.0, 9.81, 0.0], dtype=torch.float64) * times[:, None, None] ** 2 / 2
+    return mesh.vertices[None] - fall
+
+
 def test_richardson_reference_is_exact_for_free_fall():
     # implicit Euler's free fall is x_n = x_0 − g h² n(n+1)/2: its error −g h t/2 is exactly linear in h,
     # so the extrapolation must give the exact x_0 − g t²/2
@@ -71,11 +78,7 @@ def test_richardson_reference_is_exact_for_free_fall():
         scene, checkpoints=2, finest_steps=8, integrator="implicit_euler"
     )
     assert [run.integrator for run in runs] == ["implicit_euler"] * 3
-    times = torch.arange(3, dtype=torch.float64) * bench_peers.CHECKPOINT_S
-    exact = (
-        mesh.vertices[None]
-        - torch.tensor([0.0, 9.81, 0.0], dtype=torch.float64) * times[:, None, None] ** 2 / 2
-    )
+    exact = free_fall(mesh, checkpoints=2)
     assert float((reference - exact).abs().max()) < 1e-9
     assert estimate < 1e-9
     # and each run's error is g h t / 2, largest at the last time t = 2/12 s
@@ -92,11 +95,7 @@ def test_tr_bdf2_reference_is_exact_for_free_fall_and_its_runs_too():
     scene = es.Scene(mesh, density=1000.0, gravity=(0.0, -9.81, 0.0))
     reference, estimate, runs = bench_peers.reference_trajectory(scene, checkpoints=2, finest_steps=8)
     assert [(run.integrator, run.steps_per_checkpoint) for run in runs] == [("tr_bdf2", 4), ("tr_bdf2", 8)]
-    times = torch.arange(3, dtype=torch.float64) * bench_peers.CHECKPOINT_S
-    exact = (
-        mesh.vertices[None]
-        - torch.tensor([0.0, 9.81, 0.0], dtype=torch.float64) * times[:, None, None] ** 2 / 2
-    )
+    exact = free_fall(mesh, checkpoints=2)
     assert float((reference - exact).abs().max()) < 1e-9
     assert estimate < 1e-9
     for run in runs:

@@ -10,14 +10,20 @@ what they accept is not a rise of the energy.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Iterator
+import importlib
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 import energysim as es
 from energysim.optim.base import NOISE_ALLOWANCE, energy_noise
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+if str(SCRIPTS) not in sys.path:
+    sys.path.insert(0, str(SCRIPTS))
+rotation = importlib.import_module("stability_matrix").rotation
 
 YOUNGS_MODULUS = 1e8  # Pa
 POISSONS_RATIO = 0.3
@@ -34,25 +40,7 @@ SPEED = 1.0  # m/s downwards at the start
 ENERGY_ROUNDING = 1e-11
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # a 48-element mesh gains nothing from intra-op threads
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def rotation(angles: tuple[float, float, float]) -> torch.Tensor:
-    """Rotation about x, then y, then z by `angles` (rad), shape `[3, 3]`."""
-    result = torch.eye(3, dtype=torch.float64)
-    for axis, angle in enumerate(angles):
-        c, s = math.cos(angle), math.sin(angle)
-        i, j = [a for a in range(3) if a != axis]
-        turn = torch.eye(3, dtype=torch.float64)
-        turn[i, i], turn[i, j], turn[j, i], turn[j, j] = c, -s, s, c
-        result = turn @ result
-    return result
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def rotated_box() -> tuple[es.TetMesh, torch.Tensor]:

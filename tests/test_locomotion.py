@@ -10,7 +10,6 @@ import math
 import os
 import sys
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -37,13 +36,7 @@ def script(name: str) -> ModuleType:
     return importlib.import_module(f"walk_{name}")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # as in test_scripts: meshes this small gain nothing from threads, and lose much on a busy machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

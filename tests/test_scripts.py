@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -29,14 +28,7 @@ drop_box = _script("drop_box")
 cantilever = _script("cantilever")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Meshes this small gain nothing from intra-op threads, and on a busy machine torch's thread pool
-    # can make a 15 ms step take 700 ms; one thread keeps the file's run time steady.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _expected_frames(steps: int, every: int) -> list[int]:

@@ -10,7 +10,6 @@ import importlib
 import math
 import os
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -45,13 +44,7 @@ SUBSET = [
 MATRIX = [(case, optimizer) for case in stability.CASES for optimizer in stability.OPTIMIZERS]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # meshes this small gain nothing from intra-op threads, and a busy machine's thread pool makes them slower
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def cell(case: str, optimizer: str, quick: bool = True, solver: es.Solver | None = None, budget=None):
