@@ -23,7 +23,10 @@ from energysim.optim.base import NOISE_ALLOWANCE, energy_noise
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 if str(SCRIPTS) not in sys.path:
     sys.path.insert(0, str(SCRIPTS))
-rotation = importlib.import_module("stability_matrix").rotation
+matrix = importlib.import_module("stability_matrix")
+# the stability matrix's independent judges: the energy from every term's plain forward, the
+# implicit-Euler residual recomputed by autograd
+rotation, mechanical_energy, step_residual = matrix.rotation, matrix.mechanical_energy, matrix.step_residual
 
 YOUNGS_MODULUS = 1e8  # Pa
 POISSONS_RATIO = 0.3
@@ -60,29 +63,6 @@ def landing() -> tuple[es.Scene, torch.Tensor]:
     x = x - torch.tensor([0.0, float(x[:, 1].min()) - GAP, 0.0], dtype=torch.float64)
     v = torch.tensor([0.0, -SPEED, 0.0], dtype=torch.float64).expand_as(x)
     return scene, scene.initial_state(x, v)
-
-
-def mechanical_energy(scene: es.Scene, state: torch.Tensor) -> tuple[float, float]:
-    """Kinetic plus every potential term (gravity, elasticity, barrier), J, and the sum of their
-    magnitudes, J."""
-    x, v = scene.split_state(state)
-    with torch.no_grad():
-        parts = [0.5 * float((scene.vertex_mass[:, None] * v[0] ** 2).sum())]
-        parts += [float(term(x)[0]) for term in scene.terms]
-    return sum(parts), sum(abs(part) for part in parts)
-
-
-def step_residual(scene: es.Scene, state: torch.Tensor, new_state: torch.Tensor) -> torch.Tensor:
-    """The implicit-Euler residual (v' − v) + h M⁻¹ ∇(Φ + D)(x'), `[n, 3]` in m/s, recomputed by autograd
-    through the terms' plain `forward` (D: the friction lagged from the step's start)."""
-    x_prev, v_prev = scene.split_state(state)
-    x_next, v_next = scene.split_state(new_state)
-    lagged = [extra for term in scene.terms for extra in term.lagged_terms(x_prev, scene.dt)]
-    with torch.enable_grad():
-        x = x_next.detach().clone().requires_grad_(True)
-        potential = sum(term(x) for term in [*scene.terms, *lagged]).sum()
-        (gradient,) = torch.autograd.grad(potential, x)
-    return (v_next - v_prev)[0] + scene.dt / scene.vertex_mass[:, None] * gradient[0]
 
 
 def test_the_measured_noise_covers_the_energy_of_a_rigid_rotation() -> None:
