@@ -207,7 +207,7 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     lines = [
         f"{name}: {len(rollout.stats)} steps of h = {rollout.dt:.4g} s, {scene.num_vertices} vertices, "
         f"{scene.mesh.num_elements} {'tets' if scene.dim == 3 else 'triangles'}, "
-        f"{solver.solver} (tol {solver.tol:.0e} m/s)",
+        f"{solver.solver} (tol {solver.tol:.0e} m/s), {scene.integrator}",
         f"  median {1e3 * statistics.median(rollout.step_seconds.tolist()):.1f} ms per step; "
         f"iterations per step mean {statistics.fmean(iterations):.2f}, max {max(iterations)}; "
         f"final residual {rollout.stats[-1].residual:.2e} m/s; "

@@ -347,7 +347,8 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     kind = "tets" if scene.dim == 3 else "triangles"
     lines = [
         f"{name}: {len(rollout.stats)} steps of h = {rollout.dt:.4g} s, {scene.num_vertices} vertices, "
-        f"{scene.mesh.num_elements} {kind}, {rollout.stats[0].solver} (tol {rollout.stats[0].tol:.0e} m/s)",
+        f"{scene.mesh.num_elements} {kind}, {rollout.stats[0].solver} (tol {rollout.stats[0].tol:.0e} m/s), "
+        f"{scene.integrator}",
         f"  median {1e3 * median:.1f} ms per step = {rollout.dt / median:.2f}x real time; "
         f"iterations per step mean {statistics.fmean(iterations):.2f}, max {max(iterations)}",
         f"  travelled {figures['distance (m)']:+.4f} m = {figures['distance (body lengths)']:+.3f} body "
@@ -368,6 +369,8 @@ def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.Argume
     add("--dt", type=float, default=spec.dt, help="time step h in s")
     add("--optimizer", "--solver", dest="optimizer", choices=SOLVERS, default="newton-cg")
     add("--tol", type=float, default=spec.tol, help="velocity-residual tolerance in m/s")
+    # steps that touch the ground are implicit Euler either way; TR-BDF2 helps airborne phases (the jumper)
+    add("--integrator", choices=es.INTEGRATORS, default="implicit_euler", help="time integrator, see es.step")
     add("--friction", type=float, default=spec.friction, help="Coulomb coefficient of the ground")
     add("--frequency", type=float, default=creature.gait_frequency, help="gait frequency f in Hz")
     add("--amplitude", type=float, default=creature.gait_amplitude, help="gait amplitude A in [0, 1]")
@@ -394,6 +397,7 @@ def script_main(argv: list[str] | None, doc: str, spec: WalkSpec) -> int:
     ramp = args.ramp / args.frequency if args.frequency > 0 else 0.0  # Gait itself rejects f <= 0
     gait = Gait(args.frequency, args.amplitude, tuple(spec.phases(args.phase_lag)), ramp)
     scene = build_scene(creature, args.dt, args.friction, args.optimizer, args.tol)
+    scene.integrator = args.integrator
     rollout = run(scene, gait, args.seconds, frames_every=args.frames_every, progress=not args.quiet)
     length = body_length(scene)
     figures = measure(rollout, length)

@@ -17,6 +17,7 @@ from conftest import rigid_alignment_error, small_box
 from test_gradients import TIGHT, beam, central_difference, loss_after
 
 import energysim as es
+from energysim.creatures import resting_state
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -245,3 +246,15 @@ def test_hard_cases_never_gain_energy_and_end_where_they_must(case):
         size = float((scene.rest_positions.amax(0) - scene.rest_positions.amin(0)).norm())
         assert rigid_alignment_error(x[0], scene.rest_positions) < 1e-2 * size
     assert energy < start
+
+
+def test_a_creature_that_always_touches_the_ground_walks_exactly_as_with_implicit_euler():
+    worm = es.load_creature("worm")
+    scenes = {name: worm.scene(1 / 60, 0.8, es.NewtonCG(tol=1e-4)) for name in es.INTEGRATORS}
+    for name, scene in scenes.items():
+        scene.integrator = name
+    states = {name: resting_state(scene) for name, scene in scenes.items()}
+    for k in range(6):
+        action = worm.gait_action(k / 60)
+        states = {name: es.timestep(scenes[name], state, action) for name, state in states.items()}
+        assert torch.equal(states["tr_bdf2"], states["implicit_euler"])
