@@ -249,8 +249,8 @@ def _second_order_where_safe(
     x_prev: Tensor,
     v_prev: Tensor,
     action: Tensor | None,
-    implicit_euler: Callable[[Tensor | None], tuple[Tensor, Tensor, SolverResult]],
-    tr_bdf2: Callable[[Tensor | None], tuple[Tensor, Tensor, Tensor, SolverResult]],
+    implicit_euler: Callable[[Tensor, Tensor, Tensor | None], tuple[Tensor, Tensor, SolverResult]],
+    tr_bdf2: Callable[[Tensor, Tensor, Tensor | None], tuple[Tensor, Tensor, Tensor, SolverResult]],
 ) -> tuple[Tensor, Tensor, SolverResult]:
     """TR-BDF2 for the batch entries where it is safe, implicit Euler for the others.
 
@@ -264,25 +264,27 @@ def _second_order_where_safe(
     - or whose TR-BDF2 solves did not converge (they are then all redone, and only the implicit-Euler
       solve reports).
     """
+
+    def entries(rows: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        return x_prev[rows], v_prev[rows], None if action is None else action[rows]
+
     euler = _touching(scene, x_prev, action)
     pieces: list[tuple[Tensor, Tensor, Tensor]] = []
     reports: list[SolverResult] = []
     rows = torch.nonzero(~euler).reshape(-1)
     if rows.numel():
-        act = None if action is None else action[rows]
+        x0, v0, act = entries(rows)
         try:
             with warnings.catch_warnings():
                 # an attempt that does not converge is discarded and redone, not reported
                 warnings.simplefilter("ignore", ConvergenceWarning)
-                x_next, v_next, x_half, report = tr_bdf2(rows)
+                x_next, v_next, x_half, report = tr_bdf2(x0, v0, act)
         except ConvergenceError:
             euler[rows] = True
         else:
             if report.converged:
                 unsafe = _touching(scene, x_half, act) | _touching(scene, x_next, act)
-                unsafe |= _gains_energy(
-                    scene, (x_prev[rows], v_prev[rows]), (x_next, v_next), act, report.residual
-                )
+                unsafe |= _gains_energy(scene, (x0, v0), (x_next, v_next), act, report.residual)
             else:
                 unsafe = torch.ones_like(rows, dtype=torch.bool)
             euler[rows[unsafe]] = True
@@ -291,7 +293,7 @@ def _second_order_where_safe(
             reports.append(report)
     rows = torch.nonzero(euler).reshape(-1)
     if rows.numel():
-        x_next, v_next, report = implicit_euler(rows)
+        x_next, v_next, report = implicit_euler(*entries(rows))
         pieces.append((rows, x_next, v_next))
         reports.append(report)
     if len(pieces) == 1 and pieces[0][0].numel() == x_prev.shape[0]:
@@ -368,33 +370,27 @@ def step(
     )
     h = scene.dt
 
-    def stage(
-        x_start: Tensor, v_start: Tensor, dt: float, rows: Tensor | None
-    ) -> tuple[Tensor, SolverResult]:
-        act = action if action is None or rows is None else action[rows]
+    def stage(x_start: Tensor, v_start: Tensor, dt: float, act: Tensor | None) -> tuple[Tensor, SolverResult]:
         return _stage(
             scene, x_start, v_start, dt, act, solver, grad_mode, adjoint_rtol, parameters, wants_grad
         )
 
-    def implicit_euler(rows: Tensor | None) -> tuple[Tensor, Tensor, SolverResult]:
-        x0, v0 = (x_prev, v_prev) if rows is None else (x_prev[rows], v_prev[rows])
-        x1, stats = stage(x0, v0, h, rows)
+    def implicit_euler(x0: Tensor, v0: Tensor, act: Tensor | None) -> tuple[Tensor, Tensor, SolverResult]:
+        x1, stats = stage(x0, v0, h, act)
         return x1, (x1 - x0) / h, stats
 
-    def tr_bdf2(rows: Tensor | None) -> tuple[Tensor, Tensor, Tensor, SolverResult]:
-        x0, v0 = (x_prev, v_prev) if rows is None else (x_prev[rows], v_prev[rows])
-        act = action if action is None or rows is None else action[rows]
+    def tr_bdf2(x0: Tensor, v0: Tensor, act: Tensor | None) -> tuple[Tensor, Tensor, Tensor, SolverResult]:
         acceleration = _acceleration(scene, x0, act, wants_grad)
         # stage targets written as implicit-Euler predictions x_start + dt·v_start
-        x_half, first = stage(x0, 2.0 * v0 + (h / 4.0) * acceleration, h / 4.0, rows)
+        x_half, first = stage(x0, 2.0 * v0 + (h / 4.0) * acceleration, h / 4.0, act)
         v_half = 4.0 * (x_half - x0) / h - v0
-        x1, second = stage(x_half, (x_half - x0) / h + (4.0 * v_half - v0) / 3.0, h / 3.0, rows)
+        x1, second = stage(x_half, (x_half - x0) / h + (4.0 * v_half - v0) / 3.0, h / 3.0, act)
         # (3x₁ − 4x½ + x₀)/h written in differences: exactly zero where nothing moved (pinned vertices)
         v1 = (3.0 * (x1 - x_half) - (x_half - x0)) / h
         return x1, v1, x_half, _combined(first, second)
 
     if scene.integrator == "implicit_euler":
-        x_next, v_next, stats = implicit_euler(None)
+        x_next, v_next, stats = implicit_euler(x_prev, v_prev, action)
     else:
         x_next, v_next, stats = _second_order_where_safe(
             scene, x_prev, v_prev, action, implicit_euler, tr_bdf2
