@@ -3,7 +3,9 @@
 The sparsity pattern depends only on which vertices each element touches, so it is computed
 once and cached; each assembly is then a single scatter-add of the block entries. A CSR
 mat-vec is tens of times cheaper than gathering, multiplying and scattering the blocks, and
-CG takes many of them per Newton iteration.
+CG takes many of them per Newton iteration. The matrix carries 32-bit indices where they fit:
+with 64-bit ones the CPU kernel converts them on every product, which took half its time at
+100k tets (1.5 → 0.7 ms per product).
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ class SparsityPattern:
     The B systems are stacked block-diagonally into one matrix of size B·n·d.
 
     Attributes:
-        crow_indices, col_indices: CSR structure, for the whole batch.
+        crow_indices, col_indices: CSR structure, for the whole batch (64-bit, for index arithmetic).
+        matrix_crow_indices, matrix_col_indices: the same in the index type the matrix is built
+            with: 32-bit where every index fits.
         row_indices: the row of every stored entry (COO rows), for eliminating DOFs.
         block_positions: for each element group, where each block entry lands in `values`,
             shape `[B·m·(kd)²]`.
@@ -36,6 +40,8 @@ class SparsityPattern:
 
     crow_indices: Tensor
     col_indices: Tensor
+    matrix_crow_indices: Tensor
+    matrix_col_indices: Tensor
     row_indices: Tensor
     block_positions: tuple[Tensor, ...]
     diagonal_positions: Tensor
@@ -76,12 +82,15 @@ def build_pattern(
     def batched_positions(positions: Tensor) -> Tensor:
         return (positions[None, :] + nnz * batch_offsets[:, None]).reshape(-1)
 
+    index_type = torch.int32 if nnz * batch < 2**31 else torch.int64
     pieces = torch.split(inverse, [key.numel() for key in keys])
     vertex_blocks = pieces[-1]
     pieces = pieces[:-1]
     return SparsityPattern(
         crow_indices=crow_batched,
         col_indices=col_batched,
+        matrix_crow_indices=crow_batched.to(index_type),
+        matrix_col_indices=col_batched.to(index_type),
         row_indices=row_batched,
         block_positions=tuple(batched_positions(piece) for piece in pieces[1:]),
         diagonal_positions=batched_positions(pieces[0]),
@@ -155,5 +164,5 @@ def assemble(
         # torch flags CSR as beta on first use; the operations used here (build, mat-vec) are stable
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         return torch.sparse_csr_tensor(
-            pattern.crow_indices, pattern.col_indices, values, size, check_invariants=False
+            pattern.matrix_crow_indices, pattern.matrix_col_indices, values, size, check_invariants=False
         )
