@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -27,6 +27,9 @@ class Objective:
             evaluated on x − anchor: that changes E by a constant only, but keeps its rounding
             error proportional to the displacement rather than to the absolute positions, so
             line searches still see the energy fall when the residual is tiny.
+        subset: builds the objective of some batch entries alone (their indices, `[k]` int64; the
+            same energies, from sliced data), or None. A solver may then drop the entries that
+            have converged instead of computing on them until the slowest one has.
     """
 
     terms: Sequence[EnergyTerm]
@@ -36,6 +39,7 @@ class Objective:
     anchor: Tensor | None = None
     energy_evals: int = 0
     grad_evals: int = 0
+    subset: Callable[[Tensor], Objective] | None = field(default=None, repr=False)
 
     def energy(self, x: Tensor) -> Tensor:
         """E(x), shape `[B]`, in J."""

@@ -105,21 +105,33 @@ def _stage(
     `dt` from (`x_start`, `v_start`), differentiable as `grad_mode` says. Every integrator is a
     sequence of these; friction is lagged from `x_start`."""
 
+    def objective_of(xp: Tensor, vp: Tensor, act: Tensor | None, anchor: Tensor | None) -> Objective:
+        terms = step_terms(list(scene.terms), scene.vertex_mass.detach(), dt, xp, vp, scene.free, anchor)
+        return Objective(
+            terms=terms,
+            free=scene.free,
+            residual_scale=dt / scene.vertex_mass.detach(),
+            action=act,
+            anchor=anchor,
+        )
+
     def solve() -> SolverResult:
         xp, vp = x_start.detach(), v_start.detach()
+        act = None if action is None else action.detach()
         free = scene.free[:, None].to(xp.dtype)
         predicted = xp + dt * vp * free
         with torch.no_grad():
-            terms = step_terms(list(scene.terms), scene.vertex_mass.detach(), dt, xp, vp, scene.free)
-            objective = Objective(
-                terms=terms,
-                free=scene.free,
-                residual_scale=dt / scene.vertex_mass.detach(),
-                action=None if action is None else action.detach(),
-            )
+            objective = objective_of(xp, vp, act, None)
             start = _warm_start(objective, predicted, xp, dt)
-            terms[0].anchor = start  # the inertia term
+            objective.terms[0].anchor = start  # the inertia term
             objective.anchor = start
+
+            def subset(entries: Tensor) -> Objective:
+                return objective_of(
+                    xp[entries], vp[entries], None if act is None else act[entries], start[entries]
+                )
+
+            objective.subset = subset
             return solver.minimize(objective, start)
 
     if not wants_grad:

@@ -167,6 +167,46 @@ def test_a_batch_is_solved_as_independent_problems():
         assert torch.allclose(batched[b], single, atol=1e-9)
 
 
+def test_a_batch_drops_converged_entries_and_still_equals_its_entries_solved_alone(monkeypatch):
+    # three boxes fall freely (the warm start is exact, so they converge at once); the fourth is
+    # thrown at the ground at 8 m/s and slides on it with friction, which takes many iterations:
+    # once at most half of the entries still iterate, the solver goes on with those alone
+    scene = es.Scene(small_box(3), dt=1 / 60, solver=es.NewtonCG(tol=1e-8))
+    scene.add(es.NeoHookean(1e5, 0.3))
+    scene.add(es.Ground(height=-0.1, friction=0.5))
+    thrown = torch.zeros(scene.num_vertices, 3, dtype=torch.float64)
+    thrown[:, 1], thrown[:, 0] = -8.0, 1.0
+    resting = torch.zeros_like(thrown)
+    start = torch.stack([scene.initial_state(velocities=v) for v in (resting, resting, thrown, resting)])
+    rows = []
+    evaluate = es.Objective.energy_and_gradient
+
+    def counting(self, x):
+        rows.append(x.shape[0])
+        return evaluate(self, x)
+
+    monkeypatch.setattr(es.Objective, "energy_and_gradient", counting)
+
+    def run(solver: es.NewtonCG) -> tuple[torch.Tensor, int]:
+        rows.clear()
+        state = start
+        for _ in range(3):  # the later steps start in contact: lagged friction is sliced too
+            result = es.step(scene, state, solver=solver)
+            assert result.stats.converged and result.stats.iterations >= 3
+            state = result.state
+        return state, sum(rows)
+
+    compacted, compacted_rows = run(es.NewtonCG(tol=1e-8))
+    full, full_rows = run(es.NewtonCG(tol=1e-8, compact_below=0.0))
+    assert compacted_rows < 0.5 * full_rows
+    assert torch.allclose(compacted, full, atol=1e-12, rtol=0)
+    for b in range(4):
+        state = start[b]
+        for _ in range(3):
+            state = es.step(scene, state).state
+        assert torch.allclose(compacted[b], state, atol=1e-10, rtol=0)
+
+
 def test_pinned_vertices_do_not_move_and_have_zero_velocity():
     mesh = es.TetMesh.box(size=(1.0, 0.2, 0.2), cells=(4, 1, 1))
     scene = es.Scene(mesh, dt=1 / 60)
