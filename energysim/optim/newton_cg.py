@@ -126,15 +126,15 @@ class NewtonCG(Solver):
             if not active.any():
                 break
             if self._compacts(root, active):
-                keep = torch.nonzero(active).reshape(-1)
+                rows = torch.nonzero(active).reshape(-1)
                 solved_x = solved_x.index_copy(0, entries, x)
                 solved_residual = solved_residual.index_copy(0, entries, residual)
-                entries = entries[keep]
+                entries = entries[rows]
                 objective = root.subset(entries)
                 used.append(objective)
-                x, energy, gradient, residual = x[keep], energy[keep], gradient[keep], residual[keep]
-                first_residual, steepest, stalled = first_residual[keep], steepest[keep], stalled[keep]
-                active = active[keep]
+                x, energy, gradient, residual = x[rows], energy[rows], gradient[rows], residual[rows]
+                first_residual, steepest, stalled = first_residual[rows], steepest[rows], stalled[rows]
+                active = active[rows]
             iterations += 1
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
