@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from energysim import compiled as compiled_functions
 from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_operator
-from energysim.energies.base import EnergyTerm
+from energysim.energies.base import ElementEnergy, EnergyTerm
 
 
 @dataclass
@@ -30,6 +31,8 @@ class Objective:
         subset: builds the objective of some batch entries alone (their indices, `[k]` int64; the
             same energies, from sliced data), or None. A solver may then drop the entries that
             have converged instead of computing on them until the slowest one has.
+        compiled: evaluate through `torch.compile`d functions (`energysim.compiled`) where every
+            term has the closed forms they call; solvers set it from their `compile` option.
     """
 
     terms: Sequence[EnergyTerm]
@@ -40,10 +43,18 @@ class Objective:
     energy_evals: int = 0
     grad_evals: int = 0
     subset: Callable[[Tensor], Objective] | None = field(default=None, repr=False)
+    compiled: bool = False
+
+    def _compiles(self, *, hessian: bool = False) -> bool:
+        return self.compiled and compiled_functions.has_closed_forms(self.terms, hessian=hessian)
 
     def energy(self, x: Tensor) -> Tensor:
         """E(x), shape `[B]`, in J."""
         self.energy_evals += 1
+        if self._compiles():
+            value = compiled_functions.energy(self.terms, self.anchor, self.action, x)
+            if value is not None:
+                return value
         with torch.no_grad():
             return self._total(x)
 
@@ -63,6 +74,12 @@ class Objective:
         backward pass.
         """
         self.grad_evals += 1
+        if self._compiles():
+            result = compiled_functions.energy_and_gradient(
+                self.terms, self.anchor, self.action, self.free, x
+            )
+            if result is not None:
+                return result
         total = x.new_zeros(x.shape[0])
         gradient = torch.zeros_like(x)
         others = []
@@ -92,6 +109,19 @@ class Objective:
             if term_limit is not None:
                 limit = torch.minimum(limit, term_limit)
         return limit
+
+    def element_groups(self) -> list[Tensor]:
+        """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the
+        order `hessian` assembles them (what the sparsity pattern is built from)."""
+        blocks = [term for term in self.terms if isinstance(term, ElementEnergy) and not term.is_linear]
+        return [term.element_vertices for term in blocks if not hasattr(term, "hessian_diagonal")]
+
+    def dense_hessian(self, x: Tensor) -> Tensor | None:
+        """∇²E(x) as dense `[B, n·d, n·d]` matrices by the compiled function, fixed DOFs eliminated;
+        None unless `compiled` and every term has closed-form blocks (then use `hessian`)."""
+        if not self._compiles(hessian=True):
+            return None
+        return compiled_functions.dense_hessian(self.terms, self.action, self.free, x)
 
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False

@@ -32,6 +32,7 @@ class Adam(Solver):
     patience: int = 10
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
+        self.prepare(objective)
         free = objective.free[:, None].to(x0.dtype)
         x = x0.detach().clone().requires_grad_(True)
         optimizer = torch.optim.Adam([x], lr=self.lr)

@@ -55,6 +55,7 @@ class LBFGS(Solver):
             raise ValueError(f"history_size must be >= 1, got {self.history_size}")
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
+        self.prepare(objective)
         x = x0.detach().clone()
         free = objective.free[:, None].to(x.dtype)
         inverse_diagonal = _initial_inverse_hessian(objective, x) * free

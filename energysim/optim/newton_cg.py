@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.block_tridiagonal import level_solve, prefer_levels
+from energysim.assembly import PATTERNS
+from energysim.block_tridiagonal import LAYOUTS, level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
 from energysim.optim.base import Solver, SolverResult, line_step
@@ -26,6 +27,21 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     # DOFs 18 µs against 140 µs for multiply-then-sum, three times per CG iteration)
     batch = a.shape[0]
     return torch.bmm(a.reshape(batch, 1, -1), b.reshape(batch, -1, 1)).reshape(batch)
+
+
+def _cholesky_directions(dense: Tensor, rhs: Tensor, wanted: Tensor) -> tuple[Tensor, Tensor]:
+    """Solve dense `[B, N, N]` systems for `rhs` `[B, n, d]` by Cholesky where positive definite;
+    returns the solutions (zero elsewhere) and which `wanted` entries they solved."""
+    factor, info = torch.linalg.cholesky_ex(dense)
+    solved = wanted & (info == 0)
+    if not solved.any():
+        return torch.zeros_like(rhs), solved
+    if not bool((info == 0).all()):
+        # a failed factor holds garbage: swap in identities so the batched solve stays finite
+        eye = torch.eye(dense.shape[-1], dtype=dense.dtype, device=dense.device)
+        factor = torch.where((info == 0)[:, None, None], factor, eye)
+    direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
+    return direction * solved[:, None, None], solved
 
 
 def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> Tensor:
@@ -108,7 +124,7 @@ class NewtonCG(Solver):
             raise ValueError(f"compact_below must lie in [0, 1), got {self.compact_below}")
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
-        root = objective
+        root = self.prepare(objective)
         x = x0.detach().clone()
         energy, gradient = objective.energy_and_gradient(x)
         residual = objective.residual(gradient)
@@ -130,7 +146,7 @@ class NewtonCG(Solver):
                 solved_x = solved_x.index_copy(0, entries, x)
                 solved_residual = solved_residual.index_copy(0, entries, residual)
                 entries = entries[rows]
-                objective = root.subset(entries)
+                objective = self.prepare(root.subset(entries))
                 used.append(objective)
                 x, energy, gradient, residual = x[rows], energy[rows], gradient[rows], residual[rows]
                 first_residual, steepest, stalled = first_residual[rows], steepest[rows], stalled[rows]
@@ -181,23 +197,61 @@ class NewtonCG(Solver):
     ) -> tuple[Tensor, Callable[[Tensor], Tensor], int]:
         """Solve H p = −∇E for the `wanted` entries; returns p, the preconditioner, and the
         Hessian-vector products taken."""
-        operator = objective.hessian(
-            x, use_element_blocks=self.hessian == "elements", project=self.project_hessian
-        )
+        operators: list[HessianOperator] = []
+
+        def operator() -> HessianOperator:
+            # built on first use: a compiled dense solve that succeeds needs none
+            if not operators:
+                operators.append(
+                    objective.hessian(
+                        x, use_element_blocks=self.hessian == "elements", project=self.project_hessian
+                    )
+                )
+            return operators[0]
+
         built: list[Callable[[Tensor], Tensor]] = []
 
         def precondition(r: Tensor) -> Tensor:
             # built on first use: when the dense solve succeeds, nothing needs it
             if not built:
-                built.append(self._preconditioner(operator, x, objective))
+                built.append(self._preconditioner(operator(), x, objective))
             return built[0](r)
 
-        direction, solved = self._direct(operator, -gradient, x, wanted)
+        compiled = self._compiled_direct(objective, -gradient, x, wanted)
+        direction, solved = compiled or self._direct(operator(), -gradient, x, wanted)
         if (wanted & ~solved).any():
             unsolved = wanted & ~solved
-            iterative = self._truncated_cg(operator, -gradient, precondition, eta, unsolved, objective)
+            iterative = self._truncated_cg(operator(), -gradient, precondition, eta, unsolved, objective)
             direction = torch.where(solved[:, None, None], direction, iterative)
-        return direction, precondition, operator.products
+        return direction, precondition, operator().products if operators else 0
+
+    def _compiled_direct(
+        self, objective: Objective, rhs: Tensor, x: Tensor, wanted: Tensor
+    ) -> tuple[Tensor, Tensor] | None:
+        """`_direct`'s dense solve from the compiled dense Hessian (`Objective.dense_hessian`): the
+        directions and which entries they solved, or None where `_direct` would not take the dense
+        path or the objective has no compiled Hessian."""
+        if (
+            not objective.compiled
+            or self.hessian != "elements"
+            or self.project_hessian
+            or x.shape[1] * x.shape[2] > self.direct_max_dofs
+            or not self._prefers_dense(objective, x)
+        ):
+            return None
+        dense = objective.dense_hessian(x)
+        return None if dense is None else _cholesky_directions(dense, rhs, wanted)
+
+    def _prefers_dense(self, objective: Objective, x: Tensor) -> bool:
+        """`_direct_method` from the objective's element groups alone, with no operator built."""
+        if self.direct != "auto":
+            return self.direct == "dense"
+        groups = objective.element_groups()
+        if not groups:
+            return True
+        batch, n, dim = x.shape
+        layout = LAYOUTS.get(PATTERNS.get(groups, n, dim, batch), groups, n, dim)
+        return not prefer_levels(layout, batch, n * dim)
 
     def _direct(
         self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor
@@ -217,16 +271,7 @@ class NewtonCG(Solver):
         dense = operator.dense(x)
         if dense is None:
             return torch.zeros_like(rhs), none
-        factor, info = torch.linalg.cholesky_ex(dense)
-        solved = wanted & (info == 0)
-        if not solved.any():
-            return torch.zeros_like(rhs), none
-        if not bool((info == 0).all()):
-            # a failed factor holds garbage: swap in identities so the batched solve stays finite
-            eye = torch.eye(dense.shape[-1], dtype=x.dtype, device=x.device)
-            factor = torch.where((info == 0)[:, None, None], factor, eye)
-        direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
-        return direction * solved[:, None, None], solved
+        return _cholesky_directions(dense, rhs, wanted)
 
     def _direct_method(self, operator: HessianOperator, x: Tensor) -> str:
         """"dense" or "levels": `direct` unless "auto", else the cheaper by the cost estimate."""

@@ -1,0 +1,113 @@
+"""Compiled objective evaluations (`Solver(compile=True)`) against the eager ones: the same energies,
+gradients, dense Hessians and trajectories, and a clear fallback where compiling is not possible."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from conftest import small_box
+
+import energysim as es
+from energysim import compiled
+from energysim.contact.friction import LaggedFriction
+from energysim.creatures import load_creature, resting_state
+from energysim.implicit import step_terms
+from energysim.objective import Objective
+
+
+def _worm_objective(batch: int = 1) -> tuple[es.Scene, Objective, torch.Tensor]:
+    """The step objective of the worm lying on the ground with its muscles on, at a perturbed x."""
+    scene = load_creature("worm").scene(1 / 60, 0.8)
+    generator = torch.Generator().manual_seed(0)
+    state = resting_state(scene).reshape(1, -1).expand(batch, -1)
+    x, v = scene.split_state(state)
+    v = v + 0.05 * torch.randn(v.shape, generator=generator, dtype=v.dtype)
+    action = torch.rand(batch, 10, generator=generator, dtype=x.dtype) * 2 - 1
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, v, scene.free)
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass, action, anchor=x.clone())
+    terms[0].anchor = objective.anchor
+    probe = x + 1e-4 * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+    return scene, objective, probe
+
+
+def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones():
+    _, objective, x = _worm_objective(batch=2)
+    assert any(isinstance(term, LaggedFriction) for term in objective.terms)  # every kind of term
+    energy, gradient = objective.energy_and_gradient(x)
+    eager_energy = objective.energy(x)
+    dense = objective.hessian(x).dense(x)
+    objective.compiled = True
+    compiled_energy, compiled_gradient = objective.energy_and_gradient(x)
+    assert torch.allclose(compiled_energy, energy, rtol=1e-12, atol=0)
+    assert torch.allclose(objective.energy(x), eager_energy, rtol=1e-12, atol=0)
+    assert torch.allclose(compiled_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))
+    compiled_dense = objective.dense_hessian(x)
+    assert torch.allclose(compiled_dense, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
+
+
+def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
+    scene = es.Scene(small_box(3), dt=1 / 60)
+    scene.add(es.NeoHookean(1e5, 0.3))
+    scene.fix([0, 1, 2])
+    x = scene.rest_positions[None] + 0.01 * torch.randn(1, scene.num_vertices, 3, dtype=torch.float64)
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, 0 * x, scene.free)
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass)
+    dense = objective.hessian(x).dense(x)
+    objective.compiled = True
+    assert torch.allclose(objective.dense_hessian(x), dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
+    assert torch.equal(objective.dense_hessian(x)[0, 0], torch.eye(scene.num_vertices * 3, dtype=x.dtype)[0])
+
+
+def test_a_compiled_walk_takes_the_same_steps_as_an_eager_one():
+    # the worm's gait for 0.2 s, with the dense direct solve from the compiled Hessian
+    scene = load_creature("worm").scene(1 / 60, 0.8)
+    actions = [torch.sin(torch.arange(10, dtype=torch.float64) + 0.3 * k) for k in range(12)]
+    runs = {}
+    for compile_flag in (False, True):
+        solver = es.NewtonCG(tol=1e-6, compile=compile_flag)
+        state, iterations = resting_state(scene), []
+        for action in actions:
+            result = es.step(scene, state, action, solver=solver)
+            state, iterations = result.state, [*iterations, result.stats.iterations]
+        runs[compile_flag] = (state, iterations)
+    assert runs[True][1] == runs[False][1]
+    assert torch.allclose(runs[True][0], runs[False][0], rtol=0, atol=1e-10)
+
+
+class _PlainSpring(es.EnergyTerm):
+    """A term with no closed forms: only its energy, for autograd."""
+
+    def forward(self, x: torch.Tensor, action: torch.Tensor | None = None) -> torch.Tensor:
+        return 50.0 * ((x[:, 0] - x[:, 1]).norm(dim=-1) - 1.0) ** 2
+
+
+def test_terms_without_closed_forms_are_evaluated_eagerly():
+    scene = es.Scene(small_box(3), dt=1 / 60, gravity=None)
+    scene.add(es.NeoHookean(1e5, 0.3))
+    scene.add(_PlainSpring())
+    velocities = torch.zeros(scene.num_vertices, 3, dtype=torch.float64)
+    velocities[0, 0] = -1.0
+    state = scene.initial_state(velocities=velocities)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no compile attempt, so no warning either
+        compiled_step = es.step(scene, state, solver=es.NewtonCG(tol=1e-9, compile=True)).state
+    eager_step = es.step(scene, state, solver=es.NewtonCG(tol=1e-9)).state
+    assert torch.allclose(compiled_step, eager_step, rtol=0, atol=1e-12)
+
+
+def test_a_function_that_fails_to_compile_warns_and_falls_back_to_eager(monkeypatch):
+    def broken(*args: object) -> None:
+        raise RuntimeError("no C++ compiler found")
+
+    monkeypatch.setattr(compiled, "_COMPILED", {"energy": broken})
+    monkeypatch.setattr(compiled, "_FAILED", set())
+    _, objective, x = _worm_objective()
+    eager = objective.energy(x)
+    objective.compiled = True
+    with pytest.warns(RuntimeWarning, match="could not compile the objective's energy .*no C\\+\\+ compiler"):
+        assert torch.equal(objective.energy(x), eager)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once only
+        assert torch.equal(objective.energy(x), eager)
