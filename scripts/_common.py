@@ -60,14 +60,15 @@ class Rollout:
     actions: Tensor | None = None
 
 
-def make_solver(name: str, tol: float) -> es.Solver:
-    """The optimizer named on the command line, stopping at velocity residual `tol` (m/s)."""
+def make_solver(name: str, tol: float, compile: bool = False) -> es.Solver:
+    """The optimizer named on the command line, stopping at velocity residual `tol` (m/s), with
+    compiled objective evaluations if `compile` (see `energysim.compiled`)."""
     if name == "newton-cg":
-        return es.NewtonCG(tol=tol)
+        return es.NewtonCG(tol=tol, compile=compile)
     if name == "lbfgs":
-        return es.LBFGS(tol=tol)
+        return es.LBFGS(tol=tol, compile=compile)
     if name == "adam":
-        return es.Adam(tol=tol)
+        return es.Adam(tol=tol, compile=compile)
     raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
 
 

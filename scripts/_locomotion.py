@@ -163,6 +163,7 @@ def build_scene(
     friction: float = 0.8,
     solver: str = "newton-cg",
     tol: float = 1e-4,
+    compile: bool = False,
 ) -> es.Scene:
     """The creature (suggested material and muscles) under gravity on a ground at y = 0 with friction μ.
 
@@ -172,8 +173,9 @@ def build_scene(
         friction: Coulomb coefficient μ ≥ 0.
         solver: "newton-cg", "lbfgs" or "adam".
         tol: the solver's velocity-residual tolerance in m/s.
+        compile: the solver evaluates the objective through compiled functions.
     """
-    return creature.scene(dt, friction, make_solver(solver, tol))
+    return creature.scene(dt, friction, make_solver(solver, tol, compile))
 
 
 def ground(scene: es.Scene) -> es.Ground:
@@ -385,6 +387,7 @@ def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.Argume
     add("--quiet", action="store_true", help="no progress bar")
     # meshes this small gain nothing from intra-op threads, and on a shared machine they lose a lot
     add("--threads", type=int, default=1, help="torch intra-op threads")
+    add("--compile", action="store_true", help="compile the objective's evaluations (seconds first)")
     return parser
 
 
@@ -396,7 +399,7 @@ def script_main(argv: list[str] | None, doc: str, spec: WalkSpec) -> int:
     creature = refined_creature(spec.creature, args.refine)
     ramp = args.ramp / args.frequency if args.frequency > 0 else 0.0  # Gait itself rejects f <= 0
     gait = Gait(args.frequency, args.amplitude, tuple(spec.phases(args.phase_lag)), ramp)
-    scene = build_scene(creature, args.dt, args.friction, args.optimizer, args.tol)
+    scene = build_scene(creature, args.dt, args.friction, args.optimizer, args.tol, args.compile)
     scene.integrator = args.integrator
     rollout = run(scene, gait, args.seconds, frames_every=args.frames_every, progress=not args.quiet)
     length = body_length(scene)

@@ -28,6 +28,7 @@ from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES, load_creature
 
 REFERENCE_FACTOR = 10.0  # the reference run's tolerance is this many times tighter
+COMPILE_WARMUP = 0.5  # s of walking that compile, untimed, before a --compile run
 
 
 @dataclass(frozen=True)
@@ -49,13 +50,20 @@ class Row:
     error_m: float
 
 
-def bench(name: str, seconds: float, tol: float | None) -> Row:
-    """Walk `name` for `seconds` at `tol` (default: the script's) and at `tol` / 10; one table row."""
+def bench(name: str, seconds: float, tol: float | None, compile: bool = False) -> Row:
+    """Walk `name` for `seconds` at `tol` (default: the script's) and at `tol` / 10; one table row.
+    With `compile`, a first walk of `COMPILE_WARMUP` s compiles the objective's functions untimed."""
     spec = importlib.import_module(f"walk_{name}").SPEC
     creature = load_creature(name)
     gait = default_gait(spec, creature)
     tol = spec.tol if tol is None else tol
-    scene = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol)
+    if compile:
+        start = time.perf_counter()
+        warmup = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol, True)
+        run(warmup, gait, COMPILE_WARMUP, progress=False)
+        wall = time.perf_counter() - start
+        print(f"{name}: compiled in a {COMPILE_WARMUP:g} s warm-up walk of {wall:.1f} s wall")
+    scene = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol, compile)
     start = time.perf_counter()
     rollout = run(scene, gait, seconds, progress=False)
     wall = time.perf_counter() - start
@@ -87,11 +95,13 @@ def bench(name: str, seconds: float, tol: float | None) -> Row:
     )
 
 
-def markdown(rows: list[Row], seconds: float) -> str:
+def markdown(rows: list[Row], seconds: float, compile: bool = False) -> str:
     """The results as a markdown table."""
+    compiled = f", compiled evaluations (untimed {COMPILE_WARMUP:g} s warm-up walk)" if compile else ""
     lines = [
         f"Walking creatures, {seconds:g} s of simulated time each from rest, float64, "
-        f"{torch.get_num_threads()} thread(s), Newton–CG; error = |final centre of mass − that of a run at "
+        f"{torch.get_num_threads()} thread(s), Newton–CG{compiled}; error = |final centre of mass − "
+        "that of a run at "
         f"{REFERENCE_FACTOR:g}× tighter tolerance|.",
         "",
         "| creature | elements | h (s) | median ms/step | real-time factor | iterations/step | converged "
@@ -138,12 +148,13 @@ def main(argv: list[str] | None = None) -> list[Row]:
         "--tol", type=float, default=None, help="velocity residual, m/s; default the script's"
     )
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--compile", action="store_true", help="compiled evaluations, compiled untimed")
     parser.add_argument("--out", type=Path, default=Path("out/bench_creatures"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     configure_cpu(args.threads)
-    rows = [bench(name, args.seconds, args.tol) for name in args.creatures]
-    table = markdown(rows, args.seconds)
+    rows = [bench(name, args.seconds, args.tol, args.compile) for name in args.creatures]
+    table = markdown(rows, args.seconds, args.compile)
     print(table)
     write_table_files(args.out, "bench_creatures", rows, table)
     if not args.no_plot:

@@ -4,7 +4,7 @@
                                      [--tol 1e-4] [--friction 0.8] [--frequency 1.5] [--amplitude 1]
                                      [--phase-lag -1.2566] [--ramp 1] [--refine 1] [--out out/walk_crawler2d]
                                      [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
-                                     [--quiet] [--threads 1]
+                                     [--quiet] [--threads 1] [--compile]
 
 The shipped 2D crawler (a 0.30 m × 0.048 m strip, 200 triangles in plane strain, quantities per metre
 of depth, E = 100 kPa, ν = 0.4, ρ = 1000 kg/m³) lies on a ground line with friction μ = 0.8. Each of its

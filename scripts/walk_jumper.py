@@ -4,7 +4,7 @@
                                   [--tol 1e-4] [--friction 0.8] [--frequency 1] [--amplitude 1]
                                   [--phase-lag -0.7854] [--ramp 1] [--refine 1] [--out out/walk_jumper]
                                   [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
-                                  [--quiet] [--threads 1]
+                                  [--quiet] [--threads 1] [--compile]
 
 The shipped jumper (a 0.20 m body on two 3×3×4-voxel legs, 816 tets, E = 100 kPa, ν = 0.4,
 ρ = 1000 kg/m³, strong vertical fibres: k = 1 MPa, c = 0.35) stands on a ground with friction μ = 0.8.

@@ -4,7 +4,7 @@
                                      [--tol 1e-4] [--friction 0.8] [--frequency 4] [--amplitude 1]
                                      [--phase-lag -1.5708] [--ramp 1] [--refine 1] [--out out/walk_quadruped]
                                      [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
-                                     [--quiet] [--threads 1]
+                                     [--quiet] [--threads 1] [--compile]
 
 The shipped quadruped (a 0.25 m body on four legs, 888 tets, E = 200 kPa, ν = 0.4, ρ = 1000 kg/m³)
 stands on a ground with friction μ = 0.8. Each leg's front and back halves are muscles with vertical

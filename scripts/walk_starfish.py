@@ -4,7 +4,7 @@
                                     [--tol 1e-4] [--friction 0.8] [--frequency 1.5] [--amplitude 1]
                                     [--phase-lag -1.5708] [--ramp 1] [--refine 1] [--out out/walk_starfish]
                                     [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
-                                    [--quiet] [--threads 1]
+                                    [--quiet] [--threads 1] [--compile]
 
 The shipped starfish (a flat 0.29 m five-armed star, 1548 tets, E = 100 kPa, ν = 0.4, ρ = 1000 kg/m³)
 lies on a ground with friction μ = 0.8. Arm k points at angle 2πk/5 from +x towards +z; its bottom and

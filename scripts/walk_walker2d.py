@@ -4,7 +4,7 @@
                                     [--tol 1e-4] [--friction 0.8] [--frequency 3] [--amplitude 1]
                                     [--phase-lag -1.5708] [--ramp 1] [--refine 1] [--out out/walk_walker2d]
                                     [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
-                                    [--quiet] [--threads 1]
+                                    [--quiet] [--threads 1] [--compile]
 
 The shipped 2D walker (a 0.24 m × 0.06 m body on a front and a back 0.04 m × 0.06 m leg, 384 triangles
 in plane strain, per metre of depth, E = 100 kPa, ν = 0.4, ρ = 1000 kg/m³) stands on a ground line with

@@ -4,6 +4,7 @@
                                 [--friction 0.8] [--frequency 1.5] [--amplitude 1] [--phase-lag -1.2566]
                                 [--ramp 1] [--refine 1] [--out out/walk_worm] [--frames-every 1]
                                 [--window-size 960 540] [--no-render] [--no-vtk] [--quiet] [--threads 1]
+                                [--compile]
 
 The shipped worm (0.30 m × 0.04 m × 0.04 m, 360 tets, E = 100 kPa, ν = 0.4, ρ = 1000 kg/m³) lies on a
 ground with friction μ = 0.8. Each of its five segments has a bottom and a top muscle with fibres along
