@@ -49,7 +49,7 @@ class SparsityPattern:
     size: int
 
 
-def _dof_indices(element_vertices: Tensor, dim: int) -> Tensor:
+def dof_indices(element_vertices: Tensor, dim: int) -> Tensor:
     """DOF numbers of every element's entries, shape `[m, k·d]` (vertex-major, as blocks are)."""
     offsets = torch.arange(dim, device=element_vertices.device)
     return (element_vertices[:, :, None] * dim + offsets).reshape(element_vertices.shape[0], -1)
@@ -64,7 +64,7 @@ def build_pattern(
     diagonal = torch.arange(size, device=device)
     keys = [diagonal * size + diagonal]
     for elements in element_groups:
-        dofs = _dof_indices(elements, dim)
+        dofs = dof_indices(elements, dim)
         keys.append((dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1))
     # every vertex's own d×d block is present, so these keys are in the pattern
     vertex_dofs = torch.arange(size, device=device).reshape(num_vertices, dim)

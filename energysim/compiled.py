@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from energysim.assembly import dof_indices
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 
@@ -75,7 +76,6 @@ def _dense_hessian(
     batch, n, dim = x.shape
     size = n * dim
     flat = x.new_zeros(batch, size * size)
-    offsets = torch.arange(dim, device=x.device)
     for term in terms:
         if term.is_linear:
             continue
@@ -85,7 +85,7 @@ def _dense_hessian(
             continue
         vertices = term.element_vertices
         blocks = term.element_hessian(x[:, vertices], action)
-        dofs = (vertices[..., None] * dim + offsets).reshape(vertices.shape[0], -1)
+        dofs = dof_indices(vertices, dim)
         positions = (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)
         flat.index_add_(1, positions, blocks.reshape(batch, -1))
     dense = flat.reshape(batch, size, size)

@@ -244,14 +244,7 @@ class NewtonCG(Solver):
 
     def _prefers_dense(self, objective: Objective, x: Tensor) -> bool:
         """`_direct_method` from the objective's element groups alone, with no operator built."""
-        if self.direct != "auto":
-            return self.direct == "dense"
-        groups = objective.element_groups()
-        if not groups:
-            return True
-        batch, n, dim = x.shape
-        layout = LAYOUTS.get(PATTERNS.get(groups, n, dim, batch), groups, n, dim)
-        return not prefer_levels(layout, batch, n * dim)
+        return self._method_for(objective.element_groups(), x) == "dense"
 
     def _direct(
         self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor
@@ -275,12 +268,17 @@ class NewtonCG(Solver):
 
     def _direct_method(self, operator: HessianOperator, x: Tensor) -> str:
         """"dense" or "levels": `direct` unless "auto", else the cheaper by the cost estimate."""
+        return self._method_for([elements for elements, _ in operator.blocks], x)
+
+    def _method_for(self, element_groups: list[Tensor], x: Tensor) -> str:
+        """`_direct_method` for a Hessian whose blocks couple the vertices of `element_groups`."""
         if self.direct != "auto":
             return self.direct
-        if not operator.blocks:
+        if not element_groups:
             return "dense"  # no element couples vertices: nothing to order by levels
         batch, n, dim = x.shape
-        return "levels" if prefer_levels(operator.level_layout(x), batch, n * dim) else "dense"
+        layout = LAYOUTS.get(PATTERNS.get(element_groups, n, dim, batch), element_groups, n, dim)
+        return "levels" if prefer_levels(layout, batch, n * dim) else "dense"
 
     def _preconditioner(
         self, operator: HessianOperator, x: Tensor, objective: Objective
