@@ -59,7 +59,10 @@ def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> Tens
         diag = blocks.diagonal(dim1=-2, dim2=-1).abs().clamp_min(torch.finfo(like.dtype).tiny)
         fallback = torch.diag_embed(diag)
         factor = torch.where(bad[..., None, None], torch.linalg.cholesky(fallback), factor)
-    return torch.cholesky_inverse(factor)
+    # (L Lᵀ)⁻¹ = L⁻ᵀ L⁻¹ by one batched triangular solve: torch.cholesky_inverse is as fast on the
+    # CPU, but on CUDA it took 16 ms for 256 × 144 blocks of 3 × 3 (a loop over the batch)
+    inverse_factor = torch.linalg.solve_triangular(factor, eye.expand_as(factor), upper=False)
+    return inverse_factor.mT @ inverse_factor
 
 
 @dataclass(frozen=True)
