@@ -112,6 +112,12 @@ class LevelLayout:
             S×S blocks, shape `[q]`.
         padding: the buffer's values before the entries land, shape `[(2L−1)·S²]`: 1 on every
             diagonal slot, so padding DOFs get identity rows (real DOFs' diagonals are overwritten).
+        band_order: the DOFs level by level without padding, shape `[n·d]` (position → DOF): an
+            ordering in which the matrix is banded (`energysim.banded`).
+        half_bandwidth: u, the largest |i − j| of a stored entry in that ordering.
+        band_entries: flat indices into a dense `[N, N]` matrix of LAPACK's upper band storage,
+            transposed, shape `[N, u + 1]`: `[j, r]` is A[p(j − u + r), p(j)] for p = `band_order`
+            (where j − u + r < 0, the corner LAPACK never reads, it points at entry 0).
     """
 
     num_levels: int
@@ -121,6 +127,9 @@ class LevelLayout:
     value_positions: Tensor
     block_positions: Tensor
     padding: Tensor
+    band_order: Tensor
+    half_bandwidth: int
+    band_entries: Tensor
 
     @property
     def cost(self) -> int:
@@ -159,6 +168,12 @@ def level_layout(
     below = row_level == col_level + 1
     keep = on_diagonal | below
     target = torch.where(on_diagonal, row_level * square, (num_levels + row_level - 1) * square) + local
+    band_order = torch.argsort(dof_slots)
+    band_position = torch.empty_like(band_order)
+    band_position[band_order] = torch.arange(size, device=device)
+    half_bandwidth = int((band_position[rows] - band_position[cols]).abs().max())
+    band_column = torch.arange(size, device=device)[:, None]
+    band_row = band_column - half_bandwidth + torch.arange(half_bandwidth + 1, device=device)
     padding = torch.zeros((2 * num_levels - 1) * square, dtype=torch.bool, device=device)
     diagonal_slots = torch.arange(num_levels * level_size, device=device)
     padding[(diagonal_slots // level_size) * square + (diagonal_slots % level_size) * (level_size + 1)] = True
@@ -170,6 +185,9 @@ def level_layout(
         value_positions=torch.nonzero(keep).flatten(),
         block_positions=target[keep],
         padding=padding,
+        band_order=band_order,
+        half_bandwidth=half_bandwidth,
+        band_entries=band_order[band_row.clamp_min(0)] * size + band_order[band_column],
     )
 
 

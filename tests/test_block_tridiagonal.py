@@ -1,5 +1,5 @@
-"""Block-tridiagonal direct solves over breadth-first vertex levels, checked against dense float64
-algebra (torch.linalg.solve / Cholesky of the assembled matrix)."""
+"""Block-tridiagonal and band direct solves over breadth-first vertex levels, checked against dense
+float64 algebra (torch.linalg.solve / Cholesky of the assembled matrix)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import energysim as es
+from energysim.banded import band_cholesky_solve, prefer_band
 from energysim.block_tridiagonal import (
     block_cholesky,
     block_cholesky_solve,
@@ -124,21 +125,51 @@ def test_indefinite_entry_is_unsolved_and_the_others_exact() -> None:
     assert bool((direction[1] == 0).all())
 
 
-def test_step_with_levels_equals_dense_step() -> None:
+@pytest.mark.parametrize("method", ["levels", "banded"])
+def test_step_with_levels_or_band_equals_dense_step(method: str) -> None:
     scene, state, action = _worm_batch([0.0, 1e-4, 2e-4], fix=True)
     dense = es.step(scene, state, action, solver=es.NewtonCG(tol=1e-8, direct="dense"))
-    levels = es.step(scene, state, action, solver=es.NewtonCG(tol=1e-8, direct="levels"))
-    assert dense.stats.converged and levels.stats.converged
+    other = es.step(scene, state, action, solver=es.NewtonCG(tol=1e-8, direct=method))
+    assert dense.stats.converged and other.stats.converged
     scale = float((dense.state - state).abs().max())
-    assert float((levels.state - dense.state).abs().max()) < RTOL * max(scale, 1.0)
+    assert float((other.state - dense.state).abs().max()) < RTOL * max(scale, 1.0)
 
 
-def test_auto_picks_dense_for_one_worm_and_levels_for_a_batch() -> None:
+def test_band_solve_is_exact_and_refuses_an_indefinite_entry() -> None:
+    # the second entry's Hessian is indefinite (as in the level-solve test above)
+    scene, state, action = _worm_batch([1e-4, 3e-3, 0.0], fix=True)
+    objective, x = _objective(scene, state, action)
+    operator = objective.hessian(x)
+    dense = operator.dense(x)
+    _, _, layout = operator.level_blocks(x)
+    size = dense.shape[-1]
+    # the level order is a band ordering, far narrower than the matrix
+    assert 4 * (layout.half_bandwidth + 1) < size
+    rhs = torch.randn(3, size, generator=torch.Generator().manual_seed(7), dtype=x.dtype)
+    solution, positive_definite = band_cholesky_solve(dense, rhs, layout)
+    assert positive_definite.tolist() == [True, False, True]
+    for entry in (0, 2):
+        expected = torch.linalg.solve(dense[entry], rhs[entry])
+        assert float((solution[entry] - expected).norm() / expected.norm()) < RTOL
+    assert bool((solution[1] == 0).all())
+    # float32 takes LAPACK's single-precision routines
+    single, _ = band_cholesky_solve(dense[:1].float(), rhs[:1].float(), layout)
+    expected = torch.linalg.solve(dense[0], rhs[0])
+    assert single.dtype == torch.float32
+    assert float((single[0].double() - expected).norm() / expected.norm()) < 1e-3
+
+
+def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> None:
     scene, state, action = _worm_batch([0.0] * 16)
     solver = es.NewtonCG()
-    for batch, method in ((1, "dense"), (16, "levels")):
+    for batch, method in ((1, "banded"), (16, "levels")):
         objective, x = _objective(scene, state[:batch], action[:batch])
-        assert solver._direct_method(objective.hessian(x), x) == method
+        groups = [elements for elements, _ in objective.hessian(x).blocks]
+        assert solver._method_for(groups, x) == method
+    # LAPACK's band routines are CPU only: elsewhere one worm is factorised dense
+    layout = solver._layout(groups, x[:1])
+    assert not prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cuda"))
+    assert prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cpu"))
 
 
 def test_unknown_direct_method_is_refused() -> None:

@@ -183,17 +183,19 @@ def stable_neo_hookean_stress_hessian(F: Tensor, mu: Tensor, lam: Tensor) -> Ten
     flat = F.reshape(*F.shape[:-2], dim * dim)
     cofactor = cofactor_matrix(F).reshape(flat.shape)
     # Built with few full-size temporaries: at 50k elements each one is tens of MB, and their
-    # allocation, not the arithmetic, dominated. Both rank-one terms come from one batched product.
+    # allocation, not the arithmetic, dominated. The two rank-one terms are broadcast products
+    # accumulated in place: as one `[.., d², 2] @ [.., 2, d²]` batched product they took twice as
+    # long (MKL, 14 ms against 7.5 ms at 50k elements), and under torch.compile an external call
+    # each time instead of a fused loop.
     shape = flat.shape[:-1]
     inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
     mu_smith, lam_smith = (
         torch.as_tensor(t, dtype=F.dtype, device=F.device).expand(shape) for t in (mu_smith, lam_smith)
     )
-    rank_one = torch.stack(
-        [cofactor * lam_smith.sqrt()[..., None], flat * ((2.0 * mu_smith).sqrt() * inverse)[..., None]],
-        dim=-1,
-    )
-    hessian = rank_one @ rank_one.transpose(-1, -2)
+    volume_direction = cofactor * lam_smith.sqrt()[..., None]
+    stretch_direction = flat * ((2.0 * mu_smith).sqrt() * inverse)[..., None]
+    hessian = volume_direction[..., :, None] * volume_direction[..., None, :]
+    hessian.addcmul_(stretch_direction[..., :, None], stretch_direction[..., None, :])
     hessian.diagonal(dim1=-2, dim2=-1).add_((mu_smith * (1.0 - inverse))[..., None])
     # every entry of ∂²J/∂F² is ±1 (2D) or ± one entry of F (3D): a signed gather, no einsum
     index, sign = _DET_HESSIAN[dim]

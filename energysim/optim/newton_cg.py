@@ -16,7 +16,8 @@ import torch
 from torch import Tensor
 
 from energysim.assembly import PATTERNS
-from energysim.block_tridiagonal import LAYOUTS, level_solve, prefer_levels
+from energysim.banded import band_cholesky_solve, prefer_band
+from energysim.block_tridiagonal import LAYOUTS, LevelLayout, level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
 from energysim.optim.base import Solver, SolverResult, line_step
@@ -29,9 +30,16 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return torch.bmm(a.reshape(batch, 1, -1), b.reshape(batch, -1, 1)).reshape(batch)
 
 
-def _cholesky_directions(dense: Tensor, rhs: Tensor, wanted: Tensor) -> tuple[Tensor, Tensor]:
+def _cholesky_directions(
+    dense: Tensor, rhs: Tensor, wanted: Tensor, band: LevelLayout | None = None
+) -> tuple[Tensor, Tensor]:
     """Solve dense `[B, N, N]` systems for `rhs` `[B, n, d]` by Cholesky where positive definite;
-    returns the solutions (zero elsewhere) and which `wanted` entries they solved."""
+    returns the solutions (zero elsewhere) and which `wanted` entries they solved. With `band`, the
+    factorisation is LAPACK's band Cholesky in that layout's ordering (`energysim.banded`)."""
+    if band is not None:
+        direction, positive_definite = band_cholesky_solve(dense, rhs.reshape(rhs.shape[0], -1), band)
+        solved = wanted & positive_definite
+        return direction.reshape(rhs.shape) * solved[:, None, None], solved
     factor, info = torch.linalg.cholesky_ex(dense)
     solved = wanted & (info == 0)
     if not solved.any():
@@ -84,12 +92,14 @@ class NewtonCG(Solver):
             per-iteration overhead); where H is not positive definite, truncated CG takes over.
             0 turns direct solves off.
         direct: how the direct solve factorises. "dense": one dense `[N, N]` Cholesky per batch
-            entry (N = n·d), ≈ B·N³/3 flops. "levels": block-tridiagonal Cholesky over breadth-first
+            entry (N = n·d), ≈ B·N³/3 flops. "banded": LAPACK's band Cholesky in the level order
+            (`energysim.banded`), ≈ B·N·u² flops for half-bandwidth u, one call per entry, CPU only
+            (elsewhere it factorises dense). "levels": block-tridiagonal Cholesky over breadth-first
             vertex levels (`energysim.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
-            picks the cheaper by that estimate (`energysim.block_tridiagonal.prefer_levels`,
-            measured on the worm, N = 432, L = 18, S = 27): dense for one worm, levels for batches
-            of them (≈ 6× faster per Newton direction at B = 16).
+            picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18,
+            S = 27, u = 44; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
+            levels for batches of them (≈ 6× faster per Newton direction at B = 16).
         compact_below: in a batch, once at most this fraction of the entries still iterates, go on
             with those alone (`Objective.subset`: the step builds their objective from their slice
             of the state), instead of computing on every entry until the slowest has converged.
@@ -117,8 +127,8 @@ class NewtonCG(Solver):
             raise ValueError(f"hessian must be 'elements' or 'autograd', got {self.hessian!r}")
         if self.preconditioner not in ("block_jacobi", "none"):
             raise ValueError(f"preconditioner must be 'block_jacobi' or 'none', got {self.preconditioner!r}")
-        if self.direct not in ("auto", "dense", "levels"):
-            raise ValueError(f"direct must be 'auto', 'dense' or 'levels', got {self.direct!r}")
+        if self.direct not in ("auto", "dense", "banded", "levels"):
+            raise ValueError(f"direct must be 'auto', 'dense', 'banded' or 'levels', got {self.direct!r}")
         if self.project_hessian and self.hessian != "elements":
             raise ValueError("project_hessian needs hessian='elements' (blocks to project)")
         if not (0 < self.forcing < 1):
@@ -239,15 +249,16 @@ class NewtonCG(Solver):
             or self.hessian != "elements"
             or self.project_hessian
             or x.shape[1] * x.shape[2] > self.direct_max_dofs
-            or not self._prefers_dense(objective, x)
         ):
             return None
+        groups = objective.element_groups()
+        method = self._method_for(groups, x)
+        if method == "levels":
+            return None
         dense = objective.dense_hessian(x)
-        return None if dense is None else _cholesky_directions(dense, rhs, wanted)
-
-    def _prefers_dense(self, objective: Objective, x: Tensor) -> bool:
-        """`_direct_method` from the objective's element groups alone, with no operator built."""
-        return self._method_for(objective.element_groups(), x) == "dense"
+        if dense is None:
+            return None
+        return _cholesky_directions(dense, rhs, wanted, self._band(method, groups, x))
 
     def _direct(
         self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor
@@ -257,7 +268,9 @@ class NewtonCG(Solver):
         none = torch.zeros_like(wanted)
         if x.shape[1] * x.shape[2] > self.direct_max_dofs or self.hessian != "elements":
             return torch.zeros_like(rhs), none
-        if self._direct_method(operator, x) == "levels":
+        groups = [elements for elements, _ in operator.blocks]
+        method = self._method_for(groups, x)
+        if method == "levels":
             levels = operator.level_blocks(x)
             if levels is None:
                 return torch.zeros_like(rhs), none
@@ -267,21 +280,31 @@ class NewtonCG(Solver):
         dense = operator.dense(x)
         if dense is None:
             return torch.zeros_like(rhs), none
-        return _cholesky_directions(dense, rhs, wanted)
-
-    def _direct_method(self, operator: HessianOperator, x: Tensor) -> str:
-        """"dense" or "levels": `direct` unless "auto", else the cheaper by the cost estimate."""
-        return self._method_for([elements for elements, _ in operator.blocks], x)
+        return _cholesky_directions(dense, rhs, wanted, self._band(method, groups, x))
 
     def _method_for(self, element_groups: list[Tensor], x: Tensor) -> str:
-        """`_direct_method` for a Hessian whose blocks couple the vertices of `element_groups`."""
+        """"dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
+        `element_groups`: `direct` unless "auto", else the cheapest by the cost estimates."""
         if self.direct != "auto":
             return self.direct
         if not element_groups:
             return "dense"  # no element couples vertices: nothing to order by levels
         batch, n, dim = x.shape
-        layout = LAYOUTS.get(PATTERNS.get(element_groups, n, dim, batch), element_groups, n, dim)
-        return "levels" if prefer_levels(layout, batch, n * dim) else "dense"
+        layout = self._layout(element_groups, x)
+        if prefer_levels(layout, batch, n * dim):
+            return "levels"
+        return "banded" if prefer_band(layout, batch, n * dim, x.device) else "dense"
+
+    def _layout(self, element_groups: list[Tensor], x: Tensor) -> LevelLayout:
+        batch, n, dim = x.shape
+        return LAYOUTS.get(PATTERNS.get(element_groups, n, dim, batch), element_groups, n, dim)
+
+    def _band(self, method: str, element_groups: list[Tensor], x: Tensor) -> LevelLayout | None:
+        """The layout whose band ordering the dense path factorises in, or None for a dense
+        factorisation (the band routines are LAPACK's: CPU only, and they need coupled vertices)."""
+        if method != "banded" or not element_groups or x.device.type != "cpu":
+            return None
+        return self._layout(element_groups, x)
 
     def _preconditioner(
         self, operator: HessianOperator, x: Tensor, objective: Objective
