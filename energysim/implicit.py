@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from energysim.banded import band_cholesky_solve, prefer_band
 from energysim.block_tridiagonal import level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.energies.base import EnergyTerm
@@ -85,7 +86,7 @@ def solve_adjoint(
     operator: HessianOperator, rhs: Tensor, x: Tensor, rtol: float, direct_max_dofs: int
 ) -> Tensor:
     """u = H⁻¹ rhs at the step's solution: Cholesky for small systems (block-tridiagonal over vertex
-    levels where that is cheaper, as for batches, see `NewtonCG.direct`), else block-Jacobi CG.
+    levels or in band storage where that is cheaper, as `NewtonCG.direct` chooses), else block-Jacobi CG.
 
     Raises:
         GradientError: H is not positive definite.
@@ -96,7 +97,8 @@ def solve_adjoint(
     )
     batch, n, dim = x.shape
     small = n * dim <= direct_max_dofs
-    if small and operator.blocks and prefer_levels(operator.level_layout(x), batch, n * dim):
+    layout = operator.level_layout(x) if small and operator.blocks else None
+    if layout is not None and prefer_levels(layout, batch, n * dim):
         levels = operator.level_blocks(x)
         if levels is not None:
             solution, positive_definite = level_solve(*levels, rhs)
@@ -104,6 +106,11 @@ def solve_adjoint(
                 raise GradientError(not_definite)
             return solution
     dense = operator.dense(x) if small else None
+    if dense is not None and layout is not None and prefer_band(layout, batch, n * dim, x.device):
+        solution, positive_definite = band_cholesky_solve(dense, rhs.reshape(batch, -1), layout)
+        if not bool(positive_definite.all()):
+            raise GradientError(not_definite)
+        return solution.reshape(rhs.shape)
     if dense is not None:
         factor, info = torch.linalg.cholesky_ex(dense)
         if bool((info != 0).any()):

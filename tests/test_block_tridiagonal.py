@@ -3,6 +3,8 @@ float64 algebra (torch.linalg.solve / Cholesky of the assembled matrix)."""
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 import torch
 
@@ -178,7 +180,7 @@ def test_unknown_direct_method_is_refused() -> None:
 
 
 def test_batched_backward_through_the_level_solve_equals_single_entries() -> None:
-    # B = 3 worms take the block-tridiagonal adjoint solve, one worm the dense one: the gradients of
+    # B = 3 worms take the block-tridiagonal adjoint solve, one worm the band one: the gradients of
     # the same loss with respect to the state and the action must agree entry by entry
     scene, state, action = _worm_batch([0.0, 1e-4, 2e-4])
     scene.solver = es.NewtonCG(tol=1e-9)
@@ -186,6 +188,7 @@ def test_batched_backward_through_the_level_solve_equals_single_entries() -> Non
     layout = objective.hessian(x).level_layout(x)
     assert prefer_levels(layout, 3, x.shape[1] * x.shape[2])
     assert not prefer_levels(layout, 1, x.shape[1] * x.shape[2])
+    assert prefer_band(layout, 1, x.shape[1] * x.shape[2], x.device)
     weights = torch.randn(state.shape, generator=torch.Generator().manual_seed(5), dtype=state.dtype)
 
     def gradients(
@@ -203,3 +206,20 @@ def test_batched_backward_through_the_level_solve_equals_single_entries() -> Non
         assert float((batched_state[i] - single_state[0]).abs().max()) < 1e-7 * scale
         action_scale = float(single_action.abs().max())
         assert float((batched_action[i] - single_action[0]).abs().max()) < 1e-7 * action_scale
+
+
+def test_backward_through_the_band_solve_equals_the_dense_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    # one worm's adjoint solve takes the band path; forced dense, the gradient must be the same
+    scene, state, action = _worm_batch([1e-4])
+    scene.solver = es.NewtonCG(tol=1e-9)
+    weights = torch.randn(state.shape, generator=torch.Generator().manual_seed(6), dtype=state.dtype)
+
+    def gradient() -> torch.Tensor:
+        start = state.clone().requires_grad_(True)
+        (es.timestep(scene, start, action) * weights).sum().backward()
+        return start.grad
+
+    band = gradient()
+    monkeypatch.setattr(sys.modules["energysim.implicit"], "prefer_band", lambda *args: False)
+    dense = gradient()
+    assert float((band - dense).abs().max()) < 1e-9 * float(dense.abs().max())
