@@ -196,6 +196,7 @@ def test_bench_creatures_reports_a_small_error_beside_each_time(tmp_path: Path) 
     (row,) = bench_creatures.main(argv)
     assert row.elements == 200 and row.kind == "triangles" and row.steps == 6 and row.converged == "6/6"
     assert row.ms_per_step > 0 and row.realtime_factor == pytest.approx(row.dt / (1e-3 * row.ms_per_step))
+    assert row.median_ms_per_step > 0
     # a residual r (m/s) moves a step's end by about h·r: 6 steps at 1e-4 m/s, well under 6 h r = 1e-5 m
     assert row.error_m < 6 * row.dt * row.tol
     table = (tmp_path / "bench_creatures.md").read_text()
