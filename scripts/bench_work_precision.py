@@ -558,6 +558,15 @@ def sweep_pairs(rows: list[Run]) -> list[tuple[str, str]]:
     return list(dict.fromkeys((r.optimizer, r.integrator) for r in rows if r.role == "sweep"))
 
 
+def sweep_runs(rows: list[Run], scene: str, optimizer: str, integrator: str) -> list[Run]:
+    """The sweep's runs of `optimizer` with `integrator` on `scene`, in the order they ran."""
+    return [
+        r
+        for r in rows
+        if r.scene == scene and r.role == "sweep" and r.optimizer == optimizer and r.integrator == integrator
+    ]
+
+
 def reference_check(rows: list[Run], scene: str) -> dict[str, float]:
     """|x_ref − x_ref(h/2)| (RMS over shared times, / body size), the smallest sweep or tight error, and
     their ratio."""
@@ -617,14 +626,8 @@ def headline(
     counts, since its trajectory is what was measured."""
     fitting = [
         r
-        for r in rows
-        if r.scene == scene
-        and r.role == "sweep"
-        and r.optimizer == optimizer
-        and r.integrator == integrator
-        and r.status in ("ok", "unconverged")
-        and finite(r.error)
-        and r.error <= accuracy
+        for r in sweep_runs(rows, scene, optimizer, integrator)
+        if r.status in ("ok", "unconverged") and finite(r.error) and r.error <= accuracy
     ]
     if by == "error":
         return min(fitting, key=lambda r: (r.error, r.wall_per_sim_s), default=None)
@@ -826,14 +829,7 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
     ]
     for scene in scenes:
         for optimizer, integrator in pairs:
-            mine = [
-                r
-                for r in rows
-                if r.scene == scene
-                and r.role == "sweep"
-                and r.optimizer == optimizer
-                and r.integrator == integrator
-            ]
+            mine = sweep_runs(rows, scene, optimizer, integrator)
             count = {
                 s: sum(r.status == s for r in mine)
                 for s in ("ok", "unconverged", "diverged", "over budget", "skipped")
@@ -1042,14 +1038,8 @@ def plot_error_sources(rows: list[Run], args: argparse.Namespace, path: Path) ->
             mine = sorted(
                 (
                     r
-                    for r in rows
-                    if r.scene == scene
-                    and r.role == "sweep"
-                    and r.optimizer == optimizer
-                    and r.integrator == integrator
-                    and r.dt == solver_dt
-                    and finite(r.solver_error)
-                    and r.solver_error > 0
+                    for r in sweep_runs(rows, scene, optimizer, integrator)
+                    if r.dt == solver_dt and finite(r.solver_error) and r.solver_error > 0
                 ),
                 key=lambda r: -r.tol,
             )
