@@ -114,10 +114,11 @@ class LevelLayout:
             diagonal slot, so padding DOFs get identity rows (real DOFs' diagonals are overwritten).
         band_order: the DOFs level by level without padding, shape `[n·d]` (position → DOF): an
             ordering in which the matrix is banded (`energysim.banded`).
+        band_position: the inverse of `band_order` (DOF → position), shape `[n·d]`.
         half_bandwidth: u, the largest |i − j| of a stored entry in that ordering.
-        band_entries: flat indices into a dense `[N, N]` matrix of LAPACK's upper band storage,
-            transposed, shape `[N, u + 1]`: `[j, r]` is A[p(j − u + r), p(j)] for p = `band_order`
-            (where j − u + r < 0, the corner LAPACK never reads, it points at entry 0).
+        band_entries: flat indices into a dense `[N, N]` matrix of LAPACK's lower band storage,
+            transposed, shape `[N, u + 1]`: `[j, r]` is A[p(j + r), p(j)] for p = `band_order`
+            (where j + r ≥ N, the corner LAPACK never reads, it points at entry 0).
     """
 
     num_levels: int
@@ -128,6 +129,7 @@ class LevelLayout:
     block_positions: Tensor
     padding: Tensor
     band_order: Tensor
+    band_position: Tensor
     half_bandwidth: int
     band_entries: Tensor
 
@@ -173,7 +175,8 @@ def level_layout(
     band_position[band_order] = torch.arange(size, device=device)
     half_bandwidth = int((band_position[rows] - band_position[cols]).abs().max())
     band_column = torch.arange(size, device=device)[:, None]
-    band_row = band_column - half_bandwidth + torch.arange(half_bandwidth + 1, device=device)
+    band_row = band_column + torch.arange(half_bandwidth + 1, device=device)
+    inside = band_row < size
     padding = torch.zeros((2 * num_levels - 1) * square, dtype=torch.bool, device=device)
     diagonal_slots = torch.arange(num_levels * level_size, device=device)
     padding[(diagonal_slots // level_size) * square + (diagonal_slots % level_size) * (level_size + 1)] = True
@@ -186,8 +189,11 @@ def level_layout(
         block_positions=target[keep],
         padding=padding,
         band_order=band_order,
+        band_position=band_position,
         half_bandwidth=half_bandwidth,
-        band_entries=band_order[band_row.clamp_min(0)] * size + band_order[band_column],
+        band_entries=torch.where(
+            inside, band_order[band_row.clamp(max=size - 1)] * size + band_order[band_column], 0
+        ),
     )
 
 

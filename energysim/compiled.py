@@ -4,10 +4,10 @@ A small body's Newton iteration is hundreds of tiny tensor operations, and in ea
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
 2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Three
 functions are compiled, each over the objective's whole list of terms: the energy, the energy with
-its gradient, and the dense Hessian of a small system (element blocks scattered straight into a
-`[B, N, N]` matrix, no CSR in between). They compute what the eager paths compute, up to the
-order of floating-point operations (the tests compare them to 1e-9 relative, and a 0.2 s worm walk
-to 1e-10 m with the same iterations).
+its gradient, and the Hessian of a small system, its element blocks scattered straight into a
+dense `[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no CSR in between.
+They compute what the eager paths compute, up to the order of floating-point operations (the
+tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
 
 Measured with `python scripts/bench_creatures.py --compile`: the worm 38.5 → 25.9 ms per step, the
 2D crawler 22.8 → 12.5 ms (faster than real time); the quadruped (888 tets, over the dense solve's
@@ -22,12 +22,20 @@ over.
 from __future__ import annotations
 
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from energysim.assembly import dof_indices
+from energysim.banded import (
+    band_diagonal_positions,
+    band_length,
+    band_positions,
+    eliminate_fixed_in_bands,
+)
+from energysim.block_tridiagonal import LevelLayout
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 
@@ -70,37 +78,37 @@ def _energy_and_gradient(
     return total, gradient * free[:, None].to(gradient.dtype)
 
 
-def _dense_hessian(
-    terms: tuple[EnergyTerm, ...], action: Tensor | None, free: Tensor, x: Tensor, eliminate: bool
+def _hessian_entries(
+    terms: tuple[EnergyTerm, ...],
+    action: Tensor | None,
+    x: Tensor,
+    groups: tuple[tuple[tuple[int, ...], Tensor], ...],
+    diagonal_positions: Tensor,
+    length: int,
 ) -> Tensor:
+    # every term's Hessian entries summed into one flat storage per batch entry (a dense matrix, or
+    # band storage): per-vertex diagonals at `diagonal_positions`; element blocks by group (terms
+    # sharing their elements, summed before one scatter) at the group's positions, where the last
+    # slot takes the entries the storage drops
     batch, n, dim = x.shape
-    size = n * dim
-    flat = x.new_zeros(batch, size * size)
+    flat = x.new_zeros(batch, length + 1)
     for term in terms:
-        if term.is_linear:
-            continue
-        if hasattr(term, "hessian_diagonal"):
-            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, size)
-            flat[:, torch.arange(size, device=x.device) * (size + 1)] += diagonal
-            continue
-        vertices = term.element_vertices
-        blocks = term.element_hessian(x[:, vertices], action)
-        dofs = dof_indices(vertices, dim)
-        positions = (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)
+        if hasattr(term, "hessian_diagonal") and not term.is_linear:
+            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
+            flat[:, diagonal_positions] += diagonal
+    for members, positions in groups:
+        element_positions = x[:, terms[members[0]].element_vertices]
+        blocks = terms[members[0]].element_hessian(element_positions, action)
+        for member in members[1:]:
+            blocks = blocks + terms[member].element_hessian(element_positions, action)
         flat.index_add_(1, positions, blocks.reshape(batch, -1))
-    dense = flat.reshape(batch, size, size)
-    if eliminate:
-        # fixed DOFs get the rows and columns of the identity, as in `energysim.assembly.assemble`
-        fixed = (~free)[:, None].expand(n, dim).reshape(-1)
-        kept = (~fixed).to(x.dtype)
-        dense = dense * kept[:, None] * kept[None, :] + torch.diag(fixed.to(x.dtype))
-    return dense
+    return flat[:, :length]
 
 
 _SOURCES: dict[str, Callable] = {
     "energy": _energy,
     "energy_and_gradient": _energy_and_gradient,
-    "dense_hessian": _dense_hessian,
+    "hessian_entries": _hessian_entries,
 }
 _COMPILED: dict[str, Callable] = {}
 _FAILED: set[str] = set()
@@ -148,9 +156,78 @@ def energy_and_gradient(
     return call("energy_and_gradient", tuple(terms), anchor, action, free, x)
 
 
+def _blocks_of(term: EnergyTerm) -> bool:
+    return not term.is_linear and not hasattr(term, "hessian_diagonal")
+
+
+_GROUPS: OrderedDict[tuple[int, ...], tuple[list[Tensor], list[list[int]]]] = OrderedDict()
+_GROUPS_CAPACITY = 16
+
+
+def _element_groups(terms: Sequence[EnergyTerm]) -> list[tuple[int, ...]]:
+    """The indices of the terms with element blocks, grouped by equal `element_vertices` (a muscle
+    term on every element of the mesh shares the elastic term's elements): one scatter per group.
+    Cached per tuple of vertex tensors."""
+    members = [index for index, term in enumerate(terms) if _blocks_of(term)]
+    vertices = [terms[index].element_vertices for index in members]
+    key = tuple(id(tensor) for tensor in vertices)
+    if key not in _GROUPS:
+        groups: list[list[int]] = []
+        for position, tensor in enumerate(vertices):
+            for group in groups:
+                first = vertices[group[0]]
+                if first is tensor or (first.shape == tensor.shape and torch.equal(first, tensor)):
+                    group.append(position)
+                    break
+            else:
+                groups.append([position])
+        # the tensors are kept with the entry, so their ids cannot be reused while it lives
+        _GROUPS[key] = (vertices, groups)
+        if len(_GROUPS) > _GROUPS_CAPACITY:
+            _GROUPS.popitem(last=False)
+    _GROUPS.move_to_end(key)
+    return [tuple(members[position] for position in group) for group in _GROUPS[key][1]]
+
+
 def dense_hessian(
     terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor
 ) -> Tensor | None:
     """∇²E(x) as dense `[B, n·d, n·d]` matrices, fixed DOFs eliminated (identity rows and columns),
     by the compiled function, or None."""
-    return call("dense_hessian", tuple(terms), action, free, x, not bool(free.all()))
+    batch, n, dim = x.shape
+    size = n * dim
+    groups = []
+    for members in _element_groups(terms):
+        dofs = dof_indices(terms[members[0]].element_vertices, dim)
+        groups.append((members, (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)))
+    diagonal = torch.arange(size, device=x.device) * (size + 1)
+    flat = call("hessian_entries", tuple(terms), action, x, tuple(groups), diagonal, size * size)
+    if flat is None:
+        return None
+    dense = flat.reshape(batch, size, size)
+    if not bool(free.all()):
+        # fixed DOFs get the rows and columns of the identity, as in `energysim.assembly.assemble`
+        fixed = (~free)[:, None].expand(n, dim).reshape(-1)
+        kept = (~fixed).to(x.dtype)
+        dense = dense * kept[:, None] * kept[None, :] + torch.diag(fixed.to(x.dtype))
+    return dense
+
+
+def band_hessian(
+    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
+) -> Tensor | None:
+    """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.banded`), fixed DOFs
+    eliminated, by the compiled function, or None."""
+    batch, n, dim = x.shape
+    groups = tuple(
+        (members, band_positions(layout, terms[members[0]].element_vertices, dim))
+        for members in _element_groups(terms)
+    )
+    diagonal = band_diagonal_positions(layout)
+    flat = call("hessian_entries", tuple(terms), action, x, groups, diagonal, band_length(layout))
+    if flat is None:
+        return None
+    bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
+    if not bool(free.all()):
+        bands = eliminate_fixed_in_bands(bands, layout, (~free)[:, None].expand(n, dim).reshape(-1))
+    return bands

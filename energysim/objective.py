@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from energysim import compiled as compiled_functions
+from energysim.block_tridiagonal import LevelLayout
 from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_operator
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
@@ -122,6 +123,13 @@ class Objective:
         if not self._compiles(hessian=True):
             return None
         return compiled_functions.dense_hessian(self.terms, self.action, self.free, x)
+
+    def band_hessian(self, x: Tensor, layout: LevelLayout) -> Tensor | None:
+        """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.banded`) by the compiled
+        function, fixed DOFs eliminated; None as for `dense_hessian`."""
+        if not self._compiles(hessian=True):
+            return None
+        return compiled_functions.band_hessian(self.terms, self.action, self.free, x, layout)
 
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False

@@ -60,6 +60,34 @@ def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     assert torch.equal(objective.dense_hessian(x)[0, 0], torch.eye(scene.num_vertices * 3, dtype=x.dtype)[0])
 
 
+def _without_corner(bands: torch.Tensor) -> torch.Tensor:
+    # band storage `[B, N, u + 1]` with the corner slots LAPACK never reads (j + r ≥ N) zeroed
+    size, width = bands.shape[1], bands.shape[2]
+    return bands.masked_fill(torch.arange(size)[:, None] + torch.arange(width) >= size, 0.0)
+
+
+@pytest.mark.parametrize("pinned", [False, True])
+def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: bool):
+    # assembled straight into band storage: the muscle and elastic blocks of the same elements are
+    # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated
+    scene, objective, x = _worm_objective(batch=2)
+    if pinned:
+        free = scene.free.clone()
+        free[[0, 5, 77]] = False
+        objective.free = free
+    solver = es.NewtonCG()
+    layout = solver._layout(objective.element_groups(), x)
+    dense = objective.hessian(x).dense(x)
+    objective.compiled = True
+    bands = objective.band_hessian(x, layout)
+    expected = _without_corner(dense.reshape(2, -1)[:, layout.band_entries])
+    assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
+    if pinned:
+        # a pinned DOF's column holds the identity's: 1 on the diagonal, 0 below it
+        dof = int(layout.band_position[5 * 3 + 1])
+        assert float(bands[0, dof, 0]) == 1.0 and float(bands[0, dof, 1:].abs().max()) == 0.0
+
+
 def test_a_compiled_walk_takes_the_same_steps_as_an_eager_one():
     # the worm's gait for 0.2 s, with the dense direct solve from the compiled Hessian
     scene = load_creature("worm").scene(1 / 60, 0.8)

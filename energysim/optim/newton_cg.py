@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from energysim.assembly import PATTERNS
-from energysim.banded import band_cholesky_solve, prefer_band
+from energysim.banded import band_cholesky_solve, prefer_band, solve_bands
 from energysim.block_tridiagonal import LAYOUTS, LevelLayout, level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
@@ -37,9 +37,7 @@ def _cholesky_directions(
     returns the solutions (zero elsewhere) and which `wanted` entries they solved. With `band`, the
     factorisation is LAPACK's band Cholesky in that layout's ordering (`energysim.banded`)."""
     if band is not None:
-        direction, positive_definite = band_cholesky_solve(dense, rhs.reshape(rhs.shape[0], -1), band)
-        solved = wanted & positive_definite
-        return direction.reshape(rhs.shape) * solved[:, None, None], solved
+        return _band_directions(band_cholesky_solve(dense, rhs.reshape(rhs.shape[0], -1), band), rhs, wanted)
     factor, info = torch.linalg.cholesky_ex(dense)
     solved = wanted & (info == 0)
     if not solved.any():
@@ -50,6 +48,15 @@ def _cholesky_directions(
         factor = torch.where((info == 0)[:, None, None], factor, eye)
     direction = torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
     return direction * solved[:, None, None], solved
+
+
+def _band_directions(
+    solved_bands: tuple[Tensor, Tensor], rhs: Tensor, wanted: Tensor
+) -> tuple[Tensor, Tensor]:
+    # a band solve's `[B, N]` solutions, shaped as `rhs`, zero where not wanted or not solved
+    direction, positive_definite = solved_bands
+    solved = wanted & positive_definite
+    return direction.reshape(rhs.shape) * solved[:, None, None], solved
 
 
 def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> Tensor:
@@ -255,10 +262,16 @@ class NewtonCG(Solver):
         method = self._method_for(groups, x)
         if method == "levels":
             return None
+        band = self._band(method, groups, x)
+        if band is not None:
+            bands = objective.band_hessian(x, band)
+            if bands is None:
+                return None
+            return _band_directions(solve_bands(bands, rhs.reshape(rhs.shape[0], -1), band), rhs, wanted)
         dense = objective.dense_hessian(x)
         if dense is None:
             return None
-        return _cholesky_directions(dense, rhs, wanted, self._band(method, groups, x))
+        return _cholesky_directions(dense, rhs, wanted)
 
     def _direct(
         self, operator: HessianOperator, rhs: Tensor, x: Tensor, wanted: Tensor
