@@ -63,7 +63,8 @@ def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: flo
     obstacles every candidate is first cut back along the way from x_n to the largest fraction
     every term allows (`max_step`, which also refuses a state that starts inside an obstacle), and
     x_n itself joins them: the one of lowest energy wins. A body resting on the ground then starts
-    where it rests, not pushed into the barrier by a step of free fall.
+    where it rests, not pushed into the barrier by a step of free fall. Before that, every term may
+    move a candidate (`EnergyTerm.warm_start`): friction holds its contact vertices at x_n.
     """
     candidates = [predicted]
     linear = [term for term in objective.terms if term.is_linear]
@@ -73,6 +74,8 @@ def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: flo
         )
         shift = (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
         candidates.insert(0, predicted - shift)
+    for term in objective.terms:
+        candidates = [term.warm_start(x_prev, candidate) for candidate in candidates]
     if not _limits_steps(list(objective.terms)):
         return candidates[0]
     best, best_energy = x_prev, objective.energy(x_prev)
@@ -121,7 +124,8 @@ def _stage(
         free = scene.free[:, None].to(xp.dtype)
         predicted = xp + dt * vp * free
         with torch.no_grad():
-            objective = objective_of(xp, vp, act, None)
+            # prepared before the warm start, whose energy evaluations then compile too
+            objective = solver.prepare(objective_of(xp, vp, act, None))
             start = _warm_start(objective, predicted, xp, dt)
             objective.terms[0].anchor = start  # the inertia term
             objective.anchor = start

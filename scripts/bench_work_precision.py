@@ -203,6 +203,10 @@ class BudgetedSolver:
         edges = self.boundaries
         return [self.results[a:b] for a, b in zip(edges, edges[1:], strict=False)]
 
+    def prepare(self, objective: Objective) -> Objective:
+        """The wrapped solver's `prepare`."""
+        return self.solver.prepare(objective)
+
     def minimize(self, objective: Objective, x0: Tensor) -> es.SolverResult:
         """The wrapped solver's `minimize`, after the budget check."""
         elapsed = time.process_time() - self.started

@@ -279,6 +279,22 @@ def test_a_sliding_block_stops_after_v0_squared_over_2_mu_g():
     assert travelled == pytest.approx(speed**2 / (2 * friction * G), rel=0.03)
 
 
+def test_a_step_starts_with_the_vertices_in_contact_held_where_they_were():
+    # friction's warm start: a prediction that moved them would start them sliding, in the regime
+    # where Newton overshoots; the vertices off the ground keep the prediction. The slides above
+    # (v0²/2μg, g sin θ − μ g cos θ) are solved from this start.
+    mesh, state = settled_on_ground(1 / 60, friction=0.5)
+    scene, ground = contact_scene(mesh, friction=0.5)
+    x, _ = scene.split_state(state)
+    (friction,) = ground.lagged_terms(x, scene.dt)
+    candidate = x + torch.tensor([0.01, 0.002, 0.0], dtype=x.dtype)
+    held = friction.warm_start(x, candidate)
+    touching = friction.weight[0] > 0
+    assert int(touching.sum()) == 9  # the bottom face's 3 × 3 vertices
+    assert torch.equal(held[0, touching], x[0, touching])
+    assert torch.equal(held[0, ~touching], candidate[0, ~touching])
+
+
 def test_a_ball_dropped_on_a_sphere_rolls_off_without_touching_it():
     occupancy = torch.zeros(4, 4, 4, dtype=torch.bool)
     centre = torch.arange(4) - 1.5

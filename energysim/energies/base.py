@@ -49,6 +49,12 @@ class EnergyTerm(nn.Module):
         and a backward pass doubles the operations."""
         return None
 
+    def warm_start(self, x_prev: Tensor, candidate: Tensor) -> Tensor:
+        """Where a step's solve may start instead of `candidate` (`[B, n, d]`, a prediction from the
+        step's start `x_prev`), in this term's view; default `candidate`. A step term overrides it
+        where a prediction is known to land where Newton's quadratic model of the term is poor."""
+        return candidate
+
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """Terms this one adds to a single step's objective, built from the positions at the step's
         start, `[B, n, d]` (friction, whose normal forces are taken there); default none."""
