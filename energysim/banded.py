@@ -13,7 +13,9 @@ and there is no CUDA one: this path is for small batches on the CPU (`prefer_ban
 
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -47,8 +49,6 @@ def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor
     """`band_cholesky_solve` from the matrices already in the layout's band storage, `bands`
     `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` is
     overwritten by the factors."""
-    from scipy.linalg import lapack
-
     batch, size = rhs.shape
     order = layout.band_order
     # [N, u+1] C-contiguous: its transpose is the Fortran-ordered `ab` LAPACK reads, with no copy.
@@ -58,7 +58,7 @@ def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor
     permuted = rhs[:, order].contiguous()
     solution = torch.zeros_like(rhs)
     positive_definite = torch.zeros(batch, dtype=torch.bool, device=rhs.device)
-    factorise, substitute = lapack.get_lapack_funcs(("pbtrf", "pbtrs"), (permuted.numpy(),))
+    factorise, substitute = _band_routines(rhs.dtype)
     for entry in range(batch):
         factor, info = factorise(bands[entry].numpy().T, lower=1, overwrite_ab=1)
         if info != 0:
@@ -68,6 +68,14 @@ def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor
             solution[entry, order] = torch.from_numpy(values)
             positive_definite[entry] = True
     return solution, positive_definite
+
+
+@functools.cache
+def _band_routines(dtype: torch.dtype) -> tuple[Callable, Callable]:
+    # LAPACK's ?pbtrf and ?pbtrs for `dtype`, looked up once (the lookup cost 10 µs a solve)
+    from scipy.linalg import lapack
+
+    return lapack.get_lapack_funcs(("pbtrf", "pbtrs"), (torch.zeros(1, dtype=dtype).numpy(),))
 
 
 def band_length(layout: LevelLayout) -> int:

@@ -46,8 +46,16 @@ class Objective:
     subset: Callable[[Tensor], Objective] | None = field(default=None, repr=False)
     compiled: bool = False
 
+    _closed_forms: dict[bool, bool] = field(default_factory=dict, init=False, repr=False)
+
     def _compiles(self, *, hessian: bool = False) -> bool:
-        return self.compiled and compiled_functions.has_closed_forms(self.terms, hessian=hessian)
+        if not self.compiled:
+            return False
+        # the terms are fixed for an objective's life: ask them once per kind (it was asked
+        # several times per Newton iteration)
+        if hessian not in self._closed_forms:
+            self._closed_forms[hessian] = compiled_functions.has_closed_forms(self.terms, hessian=hessian)
+        return self._closed_forms[hessian]
 
     def energy(self, x: Tensor) -> Tensor:
         """E(x), shape `[B]`, in J."""

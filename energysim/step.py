@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.derivatives import energy_and_gradient
 from energysim.energies.base import EnergyTerm
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
@@ -63,17 +62,18 @@ def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: flo
     obstacles every candidate is first cut back along the way from x_n to the largest fraction
     every term allows (`max_step`, which also refuses a state that starts inside an obstacle), and
     x_n itself joins them: the one of lowest energy wins. A body resting on the ground then starts
-    where it rests, not pushed into the barrier by a step of free fall. Before that, every term may
-    move a candidate (`EnergyTerm.warm_start`): friction holds its contact vertices at x_n.
+    where it rests, not pushed into the barrier by a step of free fall. (On the worm's walk the
+    plain prediction won 282 of 300 steps, x_n the rest; on the quadruped's the shifted one won 21.)
+    Before that, every term may move a candidate (`EnergyTerm.warm_start`): friction holds its
+    contact vertices at x_n.
     """
     candidates = [predicted]
     linear = [term for term in objective.terms if term.is_linear]
     if linear:
-        _, gradient = energy_and_gradient(
-            lambda y: sum(term(y, objective.action) for term in linear), predicted
-        )
-        shift = (dt * objective.residual_scale[:, None] * objective.free[:, None]) * gradient
-        candidates.insert(0, predicted - shift)
+        # closed forms where the terms have them (gravity does): no autograd pass
+        forces = Objective(linear, objective.free, objective.residual_scale, objective.action)
+        _, gradient = forces.energy_and_gradient(predicted)
+        candidates.insert(0, predicted - (dt * objective.residual_scale[:, None]) * gradient)
     for term in objective.terms:
         candidates = [term.warm_start(x_prev, candidate) for candidate in candidates]
     if not _limits_steps(list(objective.terms)):
