@@ -1,7 +1,7 @@
 """The 2D crawler crawls: a bending wave runs from tail to head along its five segments; checks itself.
 
     python scripts/walk_crawler2d.py [--seconds 5] [--dt 0.01667] [--optimizer newton-cg|lbfgs|adam]
-                                     [--tol 1e-4] [--friction 0.8] [--frequency 1.5] [--amplitude 1]
+                                     [--tol 1e-3] [--friction 0.8] [--frequency 1.5] [--amplitude 1]
                                      [--phase-lag -1.2566] [--ramp 1] [--refine 1] [--out out/walk_crawler2d]
                                      [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
                                      [--quiet] [--threads 1] [--compile]

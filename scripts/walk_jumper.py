@@ -1,7 +1,7 @@
 """The jumper hops: two thick legs crouch and kick, the back leg ahead of the front; the run checks itself.
 
     python scripts/walk_jumper.py [--seconds 5] [--dt 0.01667] [--optimizer newton-cg|lbfgs|adam]
-                                  [--tol 1e-4] [--friction 0.8] [--frequency 1] [--amplitude 1]
+                                  [--tol 1e-3] [--friction 0.8] [--frequency 1] [--amplitude 1]
                                   [--phase-lag -0.7854] [--ramp 1] [--refine 1] [--out out/walk_jumper]
                                   [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
                                   [--quiet] [--threads 1] [--compile]

@@ -1,7 +1,7 @@
 """The 2D walker walks on two rocking legs, the back leg a quarter period behind; the run checks itself.
 
     python scripts/walk_walker2d.py [--seconds 5] [--dt 0.01667] [--optimizer newton-cg|lbfgs|adam]
-                                    [--tol 1e-4] [--friction 0.8] [--frequency 3] [--amplitude 1]
+                                    [--tol 1e-3] [--friction 0.8] [--frequency 3] [--amplitude 1]
                                     [--phase-lag -1.5708] [--ramp 1] [--refine 1] [--out out/walk_walker2d]
                                     [--frames-every 1] [--window-size 960 540] [--no-render] [--no-vtk]
                                     [--quiet] [--threads 1] [--compile]

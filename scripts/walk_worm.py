@@ -1,6 +1,6 @@
 """The worm crawls: a bending wave runs from tail to head along its five segments; the run checks itself.
 
-    python scripts/walk_worm.py [--seconds 5] [--dt 0.01667] [--optimizer newton-cg|lbfgs|adam] [--tol 1e-4]
+    python scripts/walk_worm.py [--seconds 5] [--dt 0.01667] [--optimizer newton-cg|lbfgs|adam] [--tol 1e-3]
                                 [--friction 0.8] [--frequency 1.5] [--amplitude 1] [--phase-lag -1.2566]
                                 [--ramp 1] [--refine 1] [--out out/walk_worm] [--frames-every 1]
                                 [--window-size 960 540] [--no-render] [--no-vtk] [--quiet] [--threads 1]
