@@ -119,13 +119,17 @@ def _stage(
         )
 
     def solve() -> SolverResult:
-        xp, vp = x_start.detach(), v_start.detach()
+        # densely strided (a one-entry batch sliced from the state is "contiguous" with the state's
+        # batch stride), and anchored from the start (at the prediction, which changes the energy by
+        # a constant only): compiled evaluations then meet one layout and one anchor kind, so each
+        # keeps one graph instead of three to try its guards against
+        xp, vp = x_start.detach().clone(memory_format=torch.contiguous_format), v_start.detach()
         act = None if action is None else action.detach()
         free = scene.free[:, None].to(xp.dtype)
         predicted = xp + dt * vp * free
         with torch.no_grad():
             # prepared before the warm start, whose energy evaluations then compile too
-            objective = solver.prepare(objective_of(xp, vp, act, None))
+            objective = solver.prepare(objective_of(xp, vp, act, predicted))
             start = _warm_start(objective, predicted, xp, dt)
             objective.terms[0].anchor = start  # the inertia term
             objective.anchor = start

@@ -152,7 +152,8 @@ class Obstacle(ElementEnergy):
         return weight * (second[..., None, None] * outer + first[..., None, None] * hessian)
 
     def _vertex_positions(self, x: Tensor) -> Tensor:
-        return x[:, self.element_vertices[:, 0]]
+        # every vertex collides by default: then no gather (a copy of x per call)
+        return x if self._vertices is None else x[:, self.element_vertices[:, 0]]
 
     def check_admissible(self, x: Tensor) -> Tensor:
         """Signed distances `[B, m]` at `x`; raises ValueError naming any vertex inside or on the obstacle."""
@@ -172,8 +173,10 @@ class Obstacle(ElementEnergy):
         Raises:
             ValueError: a vertex is already inside or on the obstacle at `x`.
         """
-        self.check_admissible(x)
-        impact = self.time_of_impact(self._vertex_positions(x), self._vertex_positions(dx))
+        points = self._vertex_positions(x)
+        if bool((self.signed_distance(points) <= 0).any()):
+            self.check_admissible(x)  # raises, naming the vertices
+        impact = self.time_of_impact(points, self._vertex_positions(dx))
         return (CCD_SAFETY * impact.amin(dim=-1)).clamp(max=1.0)
 
     def normal_force(self, x: Tensor) -> Tensor:
