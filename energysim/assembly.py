@@ -11,12 +11,13 @@ with 64-bit ones the CPU kernel converts them on every product, which took half 
 from __future__ import annotations
 
 import warnings
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from energysim.caching import IdentityCache
 
 
 @dataclass(frozen=True)
@@ -99,38 +100,20 @@ def build_pattern(
     )
 
 
-class PatternCache:
-    """A few recently used patterns, keyed by the identity of the element index tensors.
-
-    Entries hold references to those tensors, so a key's identity cannot be reused by another
-    tensor while the entry lives.
-    """
-
-    def __init__(self, capacity: int = 8) -> None:
-        self.capacity = capacity
-        self._entries: OrderedDict[tuple, tuple[tuple[Tensor, ...], SparsityPattern]] = OrderedDict()
-
-    def get(
-        self, element_groups: Sequence[Tensor], num_vertices: int, dim: int, batch: int
-    ) -> SparsityPattern:
-        key = (
-            tuple(id(g) for g in element_groups),
-            tuple(g._version for g in element_groups),
-            num_vertices,
-            dim,
-            batch,
-        )
-        if key in self._entries:
-            self._entries.move_to_end(key)
-            return self._entries[key][1]
-        pattern = build_pattern(element_groups, num_vertices, dim, batch)
-        self._entries[key] = (tuple(element_groups), pattern)
-        if len(self._entries) > self.capacity:
-            self._entries.popitem(last=False)
-        return pattern
+_PATTERNS: IdentityCache[SparsityPattern] = IdentityCache(capacity=8)
 
 
-PATTERNS = PatternCache()
+def cached_pattern(
+    element_groups: Sequence[Tensor], num_vertices: int, dim: int, batch: int
+) -> SparsityPattern:
+    """`build_pattern`, for a few recently used element index tensors (keyed by their identity and
+    version, so an in-place change to one builds anew)."""
+    versions = tuple(group._version for group in element_groups)
+    return _PATTERNS.get(
+        element_groups,
+        (versions, num_vertices, dim, batch),
+        lambda: build_pattern(element_groups, num_vertices, dim, batch),
+    )
 
 
 def assemble(

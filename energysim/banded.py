@@ -14,7 +14,6 @@ and there is no CUDA one: this path is for small batches on the CPU (`prefer_ban
 from __future__ import annotations
 
 import functools
-from collections import OrderedDict
 from collections.abc import Callable
 
 import torch
@@ -22,6 +21,7 @@ from torch import Tensor
 
 from energysim.assembly import dof_indices
 from energysim.block_tridiagonal import LevelLayout
+from energysim.caching import IdentityCache
 
 # Band storage wins when N·(u+1)² is well below N³/3; LAPACK's band kernels run at a fraction of the
 # dense kernel's flop rate at these sizes, so ask for a clear margin.
@@ -83,8 +83,7 @@ def band_length(layout: LevelLayout) -> int:
     return layout.band_position.numel() * (layout.half_bandwidth + 1)
 
 
-_POSITIONS: OrderedDict[tuple[int, int], tuple[LevelLayout, Tensor, Tensor]] = OrderedDict()
-_POSITIONS_CAPACITY = 32
+_POSITIONS: IdentityCache[Tensor] = IdentityCache(capacity=32)
 
 
 def band_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> Tensor:
@@ -96,19 +95,14 @@ def band_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> T
     Assembling straight into band storage skips the dense `[N, N]` matrix (1.5 MB for the worm,
     zeroed every Newton iteration) and the gather out of it. Cached per layout and vertex tensor.
     """
-    key = (id(layout), id(element_vertices))
-    if key in _POSITIONS:
-        _POSITIONS.move_to_end(key)
-        return _POSITIONS[key][2]
-    position = layout.band_position[dof_indices(element_vertices, dim)]
-    row, column = position[:, :, None], position[:, None, :]
-    width = layout.half_bandwidth + 1
-    positions = torch.where(row >= column, column * width + (row - column), band_length(layout)).reshape(-1)
-    # the layout and vertices are kept with the entry, so their ids cannot be reused while it lives
-    _POSITIONS[key] = (layout, element_vertices, positions)
-    if len(_POSITIONS) > _POSITIONS_CAPACITY:
-        _POSITIONS.popitem(last=False)
-    return positions
+
+    def build() -> Tensor:
+        position = layout.band_position[dof_indices(element_vertices, dim)]
+        row, column = position[:, :, None], position[:, None, :]
+        width = layout.half_bandwidth + 1
+        return torch.where(row >= column, column * width + (row - column), band_length(layout)).reshape(-1)
+
+    return _POSITIONS.get((layout, element_vertices), dim, build)
 
 
 def band_diagonal_positions(layout: LevelLayout) -> Tensor:
@@ -122,7 +116,7 @@ def eliminate_fixed_in_bands(bands: Tensor, layout: LevelLayout, fixed_dofs: Ten
     size, width = bands.shape[1], bands.shape[2]
     fixed = fixed_dofs[layout.band_order]
     kept = (~fixed).to(bands.dtype)
-    rows = (torch.arange(size, device=bands.device)[:, None] + torch.arange(width, device=bands.device))
+    rows = torch.arange(size, device=bands.device)[:, None] + torch.arange(width, device=bands.device)
     mask = kept[:, None] * kept[rows.clamp(max=size - 1)]
     bands = bands * mask
     bands[..., 0] += fixed.to(bands.dtype)

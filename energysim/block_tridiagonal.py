@@ -12,7 +12,6 @@ with L levels of a few vertices each, and a batch of them, that is tens of times
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -20,6 +19,7 @@ import torch
 from torch import Tensor
 
 from energysim.assembly import SparsityPattern
+from energysim.caching import IdentityCache
 
 # a pseudo-peripheral start is found by a few sweeps of breadth-first search (George & Liu);
 # more than this many hardly ever lengthens the level structure further
@@ -197,29 +197,15 @@ def level_layout(
     )
 
 
-class LayoutCache:
-    """Layouts of recently used sparsity patterns, keyed by the pattern's identity (patterns are
-    cached and immutable; each entry holds a reference to its pattern, so the identity is not reused)."""
-
-    def __init__(self, capacity: int = 8) -> None:
-        self.capacity = capacity
-        self._entries: OrderedDict[int, tuple[SparsityPattern, LevelLayout]] = OrderedDict()
-
-    def get(
-        self, pattern: SparsityPattern, element_groups: Sequence[Tensor], num_vertices: int, dim: int
-    ) -> LevelLayout:
-        key = id(pattern)
-        if key in self._entries:
-            self._entries.move_to_end(key)
-            return self._entries[key][1]
-        layout = level_layout(pattern, element_groups, num_vertices, dim)
-        self._entries[key] = (pattern, layout)
-        if len(self._entries) > self.capacity:
-            self._entries.popitem(last=False)
-        return layout
+_LAYOUTS: IdentityCache[LevelLayout] = IdentityCache(capacity=8)
 
 
-LAYOUTS = LayoutCache()
+def cached_layout(
+    pattern: SparsityPattern, element_groups: Sequence[Tensor], num_vertices: int, dim: int
+) -> LevelLayout:
+    """`level_layout`, for a few recently used patterns (keyed by the pattern's identity: patterns
+    are cached and immutable)."""
+    return _LAYOUTS.get((pattern,), None, lambda: level_layout(pattern, element_groups, num_vertices, dim))
 
 
 def gather_blocks(values: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor]:

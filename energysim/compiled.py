@@ -23,7 +23,6 @@ over.
 from __future__ import annotations
 
 import warnings
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
 import torch
@@ -37,6 +36,7 @@ from energysim.banded import (
     eliminate_fixed_in_bands,
 )
 from energysim.block_tridiagonal import LevelLayout
+from energysim.caching import IdentityCache
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 
@@ -161,8 +161,7 @@ def _blocks_of(term: EnergyTerm) -> bool:
     return not term.is_linear and not hasattr(term, "hessian_diagonal")
 
 
-_GROUPS: OrderedDict[tuple[int, ...], tuple[list[Tensor], list[list[int]]]] = OrderedDict()
-_GROUPS_CAPACITY = 16
+_GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
 
 
 def _element_groups(terms: Sequence[EnergyTerm]) -> list[tuple[int, ...]]:
@@ -171,8 +170,8 @@ def _element_groups(terms: Sequence[EnergyTerm]) -> list[tuple[int, ...]]:
     Cached per tuple of vertex tensors."""
     members = [index for index, term in enumerate(terms) if _blocks_of(term)]
     vertices = [terms[index].element_vertices for index in members]
-    key = tuple(id(tensor) for tensor in vertices)
-    if key not in _GROUPS:
+
+    def build() -> list[list[int]]:
         groups: list[list[int]] = []
         for position, tensor in enumerate(vertices):
             for group in groups:
@@ -182,12 +181,9 @@ def _element_groups(terms: Sequence[EnergyTerm]) -> list[tuple[int, ...]]:
                     break
             else:
                 groups.append([position])
-        # the tensors are kept with the entry, so their ids cannot be reused while it lives
-        _GROUPS[key] = (vertices, groups)
-        if len(_GROUPS) > _GROUPS_CAPACITY:
-            _GROUPS.popitem(last=False)
-    _GROUPS.move_to_end(key)
-    return [tuple(members[position] for position in group) for group in _GROUPS[key][1]]
+        return groups
+
+    return [tuple(members[position] for position in group) for group in _GROUPS.get(vertices, None, build)]
 
 
 def dense_hessian(

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.assembly import PATTERNS, SparsityPattern, assemble
-from energysim.block_tridiagonal import LAYOUTS, LevelLayout, gather_blocks
+from energysim.assembly import SparsityPattern, assemble, cached_pattern
+from energysim.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 EnergyFn = Callable[[Tensor], Tensor]
@@ -167,7 +167,7 @@ class HessianOperator:
         """The block-tridiagonal layout of this operator's sparsity pattern (cached per pattern)."""
         _, n, dim = like.shape
         groups = [elements for elements, _ in self.blocks]
-        return LAYOUTS.get(self._pattern(like), groups, n, dim)
+        return cached_layout(self._pattern(like), groups, n, dim)
 
     def vertex_blocks(self, like: Tensor) -> Tensor:
         """The d×d diagonal block of H at every vertex, shape `[B, n, d, d]`, for block-Jacobi.
@@ -184,7 +184,7 @@ class HessianOperator:
 
     def _pattern(self, like: Tensor) -> SparsityPattern:
         batch, n, dim = like.shape
-        return PATTERNS.get([elements for elements, _ in self.blocks], n, dim, batch)
+        return cached_pattern([elements for elements, _ in self.blocks], n, dim, batch)
 
 
 def hessian_operator(

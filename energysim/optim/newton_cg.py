@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.assembly import PATTERNS
+from energysim.assembly import cached_pattern
 from energysim.banded import band_cholesky_solve, prefer_band, solve_bands
-from energysim.block_tridiagonal import LAYOUTS, LevelLayout, level_solve, prefer_levels
+from energysim.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
 from energysim.objective import Objective
 from energysim.optim.base import Solver, SolverResult, line_step
@@ -310,7 +310,7 @@ class NewtonCG(Solver):
 
     def _layout(self, element_groups: list[Tensor], x: Tensor) -> LevelLayout:
         batch, n, dim = x.shape
-        return LAYOUTS.get(PATTERNS.get(element_groups, n, dim, batch), element_groups, n, dim)
+        return cached_layout(cached_pattern(element_groups, n, dim, batch), element_groups, n, dim)
 
     def _band(self, method: str, element_groups: list[Tensor], x: Tensor) -> LevelLayout | None:
         """The layout whose band ordering the dense path factorises in, or None for a dense
