@@ -202,8 +202,11 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
     assert np.allclose(observation[layout.activation], clipped, atol=FLOAT32_TOLERANCE)
 
 
-def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11, **options: object) -> None:
-    """Step a vector env and `batch` single envs (seeds seed + i) with the same actions; compare.
+def assert_batched_equals_single(
+    creature: str, batch: int, steps: int, seed: int = 11, **options: object
+) -> None:
+    """Step a vector env and `batch` single envs (seeds seed + i) with the same actions; assert that
+    each entry's state agrees with its single env to 1e-8 and its observation, reward and info terms too.
 
     `options` go to both constructors."""
     vector = CreatureVectorEnv(batch, creature, **options)
@@ -237,9 +240,9 @@ def batched_and_single(creature: str, batch: int, steps: int, seed: int = 11, **
 def test_batched_step_equals_single_env_steps(options: dict[str, object]) -> None:
     # one batched solve of B entries gives each entry what its own env gives (CI: the 2D crawler)
     if FULL:
-        batched_and_single("worm", batch=4, steps=3, **options)
+        assert_batched_equals_single("worm", batch=4, steps=3, **options)
     else:
-        batched_and_single("crawler2d", batch=3, steps=2, **options)
+        assert_batched_equals_single("crawler2d", batch=3, steps=2, **options)
 
 
 def test_activation_dynamics_are_the_exact_step_response() -> None:
