@@ -2,10 +2,12 @@
 
 A small body's Newton iteration is hundreds of tiny tensor operations, and in eager PyTorch on a
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
-2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Three
+2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Four
 functions are compiled, each over the objective's whole list of terms: the energy, the energy with
-its gradient, and the Hessian of a small system, its element blocks scattered straight into a
-dense `[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no CSR in between.
+its gradient, a line search's first trial (the CCD step limit, then the energy, gradient, slopes
+and residual where it lands), and the Hessian of a small system, its element blocks scattered
+straight into a dense `[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no
+CSR in between.
 They compute what the eager paths compute, up to the order of floating-point operations (the
 tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
 
@@ -79,6 +81,29 @@ def _energy_and_gradient(
     return total, gradient * free[:, None].to(gradient.dtype)
 
 
+def _trial(
+    terms: tuple[EnergyTerm, ...],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    free: Tensor,
+    residual_scale: Tensor,
+    x: Tensor,
+    direction: Tensor,
+    gradient: Tensor,
+) -> tuple[Tensor, ...]:
+    limit = x.new_ones(x.shape[0])
+    for term in terms:
+        term_limit = term.step_limit(x, direction)
+        if term_limit is not None:
+            limit = torch.minimum(limit, term_limit)
+    trial_x = x + limit[:, None, None] * direction
+    energy, trial_gradient = _energy_and_gradient(terms, anchor, action, free, trial_x)
+    slope = (gradient * direction).sum(dim=(-1, -2))
+    trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
+    residual = (trial_gradient * residual_scale[:, None]).abs().amax(dim=(-1, -2))
+    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual
+
+
 def _hessian_entries(
     terms: tuple[EnergyTerm, ...],
     action: Tensor | None,
@@ -110,6 +135,7 @@ _SOURCES: dict[str, Callable] = {
     "energy": _energy,
     "energy_and_gradient": _energy_and_gradient,
     "hessian_entries": _hessian_entries,
+    "trial": _trial,
 }
 # Inductor's C++ backend inlines an intermediate with a single consumer into that consumer's loop,
 # so a per-element quantity broadcast over a 12×12 block (the muscle's 3×3 fibre stiffness, the
@@ -166,6 +192,20 @@ def energy_and_gradient(
 ) -> tuple[Tensor, Tensor] | None:
     """E(x) `[B]` and ∇E(x) `[B, n, d]` (zero on fixed vertices) by the compiled function, or None."""
     return call("energy_and_gradient", tuple(terms), anchor, action, free, x)
+
+
+def trial(
+    terms: Sequence[EnergyTerm],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    free: Tensor,
+    residual_scale: Tensor,
+    x: Tensor,
+    direction: Tensor,
+    gradient: Tensor,
+) -> tuple[Tensor, ...] | None:
+    """`Objective.trial`'s seven results by one compiled function, or None."""
+    return call("trial", tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
 
 
 def _blocks_of(term: EnergyTerm) -> bool:

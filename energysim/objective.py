@@ -14,6 +14,27 @@ from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_
 from energysim.energies.base import ElementEnergy, EnergyTerm
 
 
+@dataclass(frozen=True)
+class LineTrial:
+    """`Objective.trial`'s results, per batch entry.
+
+    Attributes:
+        step: the largest admissible fraction of the direction, at most 1, `[B]`.
+        x: where that step lands, `[B, n, d]`, in m.
+        energy: E there `[B]`, in J; gradient: ∇E there `[B, n, d]`, in N.
+        slope: the slope of E along the direction at the start `[B]`, in J; trial_slope: at `x`.
+        residual: the velocity residual at `x` `[B]`, in m/s.
+    """
+
+    step: Tensor
+    x: Tensor
+    energy: Tensor
+    gradient: Tensor
+    slope: Tensor
+    trial_slope: Tensor
+    residual: Tensor
+
+
 @dataclass
 class Objective:
     """E(x) = Σ_i E_i(x) over the free vertices, with counters of what solvers evaluated.
@@ -118,6 +139,38 @@ class Objective:
             if term_limit is not None:
                 limit = torch.minimum(limit, term_limit)
         return limit
+
+    def trial(self, x: Tensor, direction: Tensor, gradient: Tensor) -> LineTrial:
+        """The first trial of a line search from `x` along `direction`: the largest admissible step
+        (`max_step`), and the energy, gradient and residual where it lands, with the slopes of E along
+        `direction` at both ends (`gradient` is ∇E(x)). One compiled call where `compiled` (a line
+        search's bookkeeping costs as much as its evaluation on a small body, eagerly).
+
+        Raises:
+            ValueError: `x` is not admissible for some term (from `max_step`).
+        """
+        if self._compiles():
+            result = compiled_functions.trial(
+                self.terms, self.anchor, self.action, self.free, self.residual_scale, x, direction, gradient
+            )
+            if result is not None:
+                self.grad_evals += 1
+                trial = LineTrial(*result)
+                if not bool(torch.isfinite(trial.step).all()):
+                    self.max_step(x, direction)  # raises where x is not admissible
+                return trial
+        step = self.max_step(x, direction)
+        trial_x = x + step[:, None, None] * direction
+        energy, trial_gradient = self.energy_and_gradient(trial_x)
+        return LineTrial(
+            step,
+            trial_x,
+            energy,
+            trial_gradient,
+            (gradient * direction).sum(dim=(-1, -2)),
+            (trial_gradient * direction).sum(dim=(-1, -2)),
+            self.residual(trial_gradient),
+        )
 
     def element_groups(self) -> list[Tensor]:
         """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the

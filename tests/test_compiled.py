@@ -47,6 +47,27 @@ def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones():
     assert torch.allclose(compiled_dense, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
+def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start():
+    # the first trial of a line search: CCD-limited step, energy, gradient, slopes and residual
+    _, objective, x = _worm_objective(batch=2)
+    x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
+    energy, gradient = objective.energy_and_gradient(x)
+    direction = -1e-3 * gradient / gradient.abs().amax()
+    direction[:, :, 1] -= 0.02  # downwards, into the ground: the step limit binds
+    eager = objective.trial(x, direction, gradient)
+    assert bool((eager.step < 1).all())
+    assert torch.equal(eager.step, objective.max_step(x, direction))
+    objective.compiled = True
+    fast = objective.trial(x, direction, gradient)
+    for name in ("step", "x", "energy", "gradient", "slope", "trial_slope", "residual"):
+        value, reference = getattr(fast, name), getattr(eager, name)
+        assert torch.allclose(value, reference, rtol=1e-10, atol=1e-9 * float(reference.abs().max())), name
+    inside = x.clone()
+    inside[1, 3, 1] = -1e-3  # one vertex below the ground, in the second entry only
+    with pytest.raises(ValueError, match=r"not admissible: vertices \[3\]"):
+        objective.trial(inside, direction, gradient)
+
+
 def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     scene = es.Scene(small_box(3), dt=1 / 60)
     scene.add(es.NeoHookean(1e5, 0.3))

@@ -13,6 +13,7 @@ import torch
 import energysim as es
 from energysim.contact import barrier, barrier_derivatives, mollified_slip
 from energysim.contact.friction import LaggedFriction
+from energysim.contact.obstacles import CCD_SAFETY
 from energysim.derivatives import autograd_element_hessian, energy_and_gradient
 
 G = 9.81
@@ -326,6 +327,22 @@ def test_a_state_inside_an_obstacle_is_refused_with_the_vertices_named():
     scene, _ = contact_scene(mesh)
     with pytest.raises(ValueError, match="not admissible: vertices"):
         es.step(scene, scene.initial_state(x0))
+
+
+def test_the_unchecked_step_limit_is_nan_exactly_where_the_start_is_inside():
+    # what compiled code calls: no branch on data, so an inadmissible entry shows as NaN
+    mesh, x0 = cube(0.2, 1, lift=0.01)
+    ground = es.Ground()
+    scene = es.Scene(mesh, dt=1 / 60)
+    scene.add(ground)
+    x = torch.stack([x0, x0 - torch.tensor([0.0, 0.02, 0.0], dtype=x0.dtype)])
+    dx = torch.zeros_like(x)
+    dx[..., 1] = -0.04
+    limit = ground.step_limit(x, dx)
+    assert limit[0] == pytest.approx(CCD_SAFETY * float(x[0, :, 1].min()) / 0.04, rel=1e-12)  # 0.2
+    assert torch.isnan(limit[1])
+    with pytest.raises(ValueError, match="not admissible"):
+        ground.max_step(x, dx)
 
 
 @pytest.mark.parametrize(

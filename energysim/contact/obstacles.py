@@ -173,11 +173,18 @@ class Obstacle(ElementEnergy):
         Raises:
             ValueError: a vertex is already inside or on the obstacle at `x`.
         """
+        limit = self.step_limit(x, dx)
+        if not bool(torch.isfinite(limit).all()):
+            self.check_admissible(x)  # raises, naming the vertices, where x is the cause
+        return limit
+
+    def step_limit(self, x: Tensor, dx: Tensor) -> Tensor:
+        """`max_step` without the check: NaN where a vertex is inside or on the obstacle at `x`."""
         points = self._vertex_positions(x)
-        if bool((self.signed_distance(points) <= 0).any()):
-            self.check_admissible(x)  # raises, naming the vertices
+        inside = (self.signed_distance(points) <= 0).any(dim=-1)
         impact = self.time_of_impact(points, self._vertex_positions(dx))
-        return (CCD_SAFETY * impact.amin(dim=-1)).clamp(max=1.0)
+        limit = (CCD_SAFETY * impact.amin(dim=-1)).clamp(max=1.0)
+        return torch.where(inside, torch.full_like(limit, torch.nan), limit)
 
     def normal_force(self, x: Tensor) -> Tensor:
         """Magnitude of the barrier's force on each colliding vertex, shape `[B, m]`, in N."""

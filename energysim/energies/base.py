@@ -38,8 +38,14 @@ class EnergyTerm(nn.Module):
     def max_step(self, x: Tensor, dx: Tensor) -> Tensor | None:
         """Largest α ≤ 1 such that `x + α dx` is admissible for this term, shape `[B]`; None: no limit.
 
-        The hook the line search starts from (contact terms use it to stay outside obstacles).
+        The hook the line search starts from (contact terms use it to stay outside obstacles). Raises
+        ValueError where `x` itself is not admissible.
         """
+        return self.step_limit(x, dx)
+
+    def step_limit(self, x: Tensor, dx: Tensor) -> Tensor | None:
+        """`max_step` without the check of `x`: NaN for batch entries where `x` is not admissible, and
+        no data-dependent branch, so that compiled code can call it (`Objective.trial`)."""
         return None
 
     def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:

@@ -248,9 +248,10 @@ def line_step(
 ) -> LineStep:
     """One line-search step from `x` along `direction`, with the energy and gradient where it ends.
 
-    Starts from the largest fraction every term allows (`objective.max_step`). That first trial is
-    evaluated with its gradient, which the solver needs next anyway: when every entry accepts it (the
-    common case near a minimum), the search costs no energy evaluation of its own. Otherwise the
+    Starts from the largest fraction every term allows (`objective.trial`, one compiled call where the
+    objective compiles). That first trial is evaluated with its gradient, which the solver needs next
+    anyway: when every entry accepts it (the common case near a minimum), the search costs no energy
+    evaluation of its own. Otherwise the
     energy's rounding noise is measured (`energy_noise`) and the trial judged again with that
     allowance. Where even the trial's predicted decrease is below the noise, the energy cannot judge
     the step, and the directional derivatives at both ends do instead (the trapezoidal estimate of
@@ -259,8 +260,9 @@ def line_step(
     whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
     (`backtracking_line_search`) and evaluates the gradient where it stopped.
     """
-    initial = objective.max_step(x, direction)
-    slope = (gradient * direction).sum(dim=(-1, -2))
+    first = objective.trial(x, direction, gradient)
+    initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient
+    slope, trial_slope, trial_residual = first.slope, first.trial_slope, first.residual
     rounding = _rounding(x, energy)
     measured = False
 
@@ -268,15 +270,12 @@ def line_step(
         return _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
 
     unjudged = -slope * initial <= rounding
-    trial_x = x + initial[:, None, None] * direction
-    trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
     decrease = armijo(trial_energy, initial)
     if not bool((decrease | ~_noise_may_matter(energy, slope, initial)).all()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = _noise_floor(objective, x, energy), True
         unjudged = -slope * initial <= rounding
         decrease = armijo(trial_energy, initial)
-    trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
     overshot = unjudged & ~slope_decrease & (slope < 0) & (trial_slope > slope)
     if bool(overshot.any()):
@@ -287,6 +286,7 @@ def line_step(
         trial_x = x + initial[:, None, None] * direction
         trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
         trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
+        trial_residual = objective.residual(trial_gradient)
         slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
         decrease = armijo(trial_energy, initial)
         if not measured and not bool(decrease.all()):
@@ -296,14 +296,7 @@ def line_step(
     # the energy cannot tell these from no change: their derivatives can
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
-        return LineStep(
-            initial,
-            trial_x,
-            trial_energy,
-            trial_gradient,
-            objective.residual(trial_gradient),
-            unjudged & ~judged,
-        )
+        return LineStep(initial, trial_x, trial_energy, trial_gradient, trial_residual, unjudged & ~judged)
     step, _, unjudged = backtracking_line_search(
         objective,
         x,
