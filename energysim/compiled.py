@@ -2,12 +2,12 @@
 
 A small body's Newton iteration is hundreds of tiny tensor operations, and in eager PyTorch on a
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
-2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Four
+2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Five
 functions are compiled, each over the objective's whole list of terms: the energy, the energy with
 its gradient, a line search's first trial (the CCD step limit, then the energy, gradient, slopes
-and residual where it lands), and the Hessian of a small system, its element blocks scattered
-straight into a dense `[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no
-CSR in between.
+and residual where it lands), the warm start's candidates cut back to admissible steps with their
+energies, and the Hessian of a small system, its element blocks scattered straight into a dense
+`[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no CSR in between.
 They compute what the eager paths compute, up to the order of floating-point operations (the
 tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
 
@@ -81,6 +81,33 @@ def _energy_and_gradient(
     return total, gradient * free[:, None].to(gradient.dtype)
 
 
+def _step_limit(terms: tuple[EnergyTerm, ...], x: Tensor, direction: Tensor) -> Tensor:
+    # as `Objective.max_step`, unchecked: NaN where x is not admissible
+    limit = x.new_ones(x.shape[0])
+    for term in terms:
+        term_limit = term.step_limit(x, direction)
+        if term_limit is not None:
+            limit = torch.minimum(limit, term_limit)
+    return limit
+
+
+def _cut_back(
+    terms: tuple[EnergyTerm, ...],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    origin: Tensor,
+    targets: tuple[Tensor, ...],
+) -> tuple[Tensor, Tensor, Tensor]:
+    energies, cuts, limits = [_energy(terms, anchor, action, origin)], [], []
+    for target in targets:
+        motion = target - origin
+        limit = _step_limit(terms, origin, motion)
+        cuts.append(origin + limit[:, None, None] * motion)
+        energies.append(_energy(terms, anchor, action, cuts[-1]))
+        limits.append(limit)
+    return torch.stack(cuts), torch.stack(energies), torch.stack(limits)
+
+
 def _trial(
     terms: tuple[EnergyTerm, ...],
     anchor: Tensor | None,
@@ -91,11 +118,7 @@ def _trial(
     direction: Tensor,
     gradient: Tensor,
 ) -> tuple[Tensor, ...]:
-    limit = x.new_ones(x.shape[0])
-    for term in terms:
-        term_limit = term.step_limit(x, direction)
-        if term_limit is not None:
-            limit = torch.minimum(limit, term_limit)
+    limit = _step_limit(terms, x, direction)
     trial_x = x + limit[:, None, None] * direction
     energy, trial_gradient = _energy_and_gradient(terms, anchor, action, free, trial_x)
     slope = (gradient * direction).sum(dim=(-1, -2))
@@ -136,6 +159,7 @@ _SOURCES: dict[str, Callable] = {
     "energy_and_gradient": _energy_and_gradient,
     "hessian_entries": _hessian_entries,
     "trial": _trial,
+    "cut_back": _cut_back,
 }
 # Inductor's C++ backend inlines an intermediate with a single consumer into that consumer's loop,
 # so a per-element quantity broadcast over a 12×12 block (the muscle's 3×3 fibre stiffness, the
@@ -206,6 +230,18 @@ def trial(
 ) -> tuple[Tensor, ...] | None:
     """`Objective.trial`'s seven results by one compiled function, or None."""
     return call("trial", tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
+
+
+def cut_back(
+    terms: Sequence[EnergyTerm],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    origin: Tensor,
+    targets: Sequence[Tensor],
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """`Objective.cut_back`'s cuts and energies, and the step limits (NaN where `origin` is not
+    admissible), by one compiled function, or None."""
+    return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets))
 
 
 def _blocks_of(term: EnergyTerm) -> bool:

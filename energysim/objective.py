@@ -172,6 +172,30 @@ class Objective:
             self.residual(trial_gradient),
         )
 
+    def cut_back(self, origin: Tensor, targets: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+        """Each of `targets` (`[B, n, d]` each) moved back towards `origin` to the largest admissible
+        fraction of the way there (`max_step`), and E at `origin` and at every cut: shapes
+        `[k, B, n, d]` and `[k + 1, B]`. One compiled call where `compiled` (a warm start's choice).
+
+        Raises:
+            ValueError: `origin` is not admissible for some term (from `max_step`).
+        """
+        self.energy_evals += len(targets) + 1
+        if self._compiles():
+            result = compiled_functions.cut_back(self.terms, self.anchor, self.action, origin, targets)
+            if result is not None:
+                cuts, energies, limits = result
+                if not bool(torch.isfinite(limits).all()):
+                    self.max_step(origin, targets[0] - origin)  # raises where origin is not admissible
+                return cuts, energies
+        cuts = []
+        for target in targets:
+            motion = target - origin
+            cuts.append(origin + self.max_step(origin, motion)[:, None, None] * motion)
+        with torch.no_grad():
+            energies = [self._total(x) for x in (origin, *cuts)]
+        return torch.stack(cuts), torch.stack(energies)
+
     def element_groups(self) -> list[Tensor]:
         """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the
         order `hessian` assembles them (what the sparsity pattern is built from)."""

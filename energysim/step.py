@@ -78,11 +78,9 @@ def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: flo
         candidates = [term.warm_start(x_prev, candidate) for candidate in candidates]
     if not _limits_steps(list(objective.terms)):
         return candidates[0]
-    best, best_energy = x_prev, objective.energy(x_prev)
-    for candidate in candidates:
-        motion = candidate - x_prev
-        candidate = x_prev + objective.max_step(x_prev, motion)[:, None, None] * motion
-        energy = objective.energy(candidate)
+    cuts, energies = objective.cut_back(x_prev, candidates)
+    best, best_energy = x_prev, energies[0]
+    for candidate, energy in zip(cuts, energies[1:], strict=True):
         better = energy < best_energy
         best = torch.where(better[:, None, None], candidate, best)
         best_energy = torch.where(better, energy, best_energy)

@@ -12,6 +12,7 @@ from conftest import small_box
 import energysim as es
 from energysim import compiled
 from energysim.contact.friction import LaggedFriction
+from energysim.contact.obstacles import CCD_SAFETY
 from energysim.creatures import load_creature, resting_state
 from energysim.implicit import step_terms
 from energysim.objective import Objective
@@ -66,6 +67,29 @@ def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissibl
     inside[1, 3, 1] = -1e-3  # one vertex below the ground, in the second entry only
     with pytest.raises(ValueError, match=r"not admissible: vertices \[3\]"):
         objective.trial(inside, direction, gradient)
+
+
+def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly():
+    # the warm start's choice: each candidate cut back towards x_n to the CCD-safe fraction, with E
+    _, objective, x = _worm_objective(batch=2)
+    origin = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)
+    lowest = origin[..., 1].amin(dim=-1)
+    down = origin - torch.tensor([0.0, 5e-3, 0.0], dtype=x.dtype)  # through the ground
+    up = origin + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # free: taken whole
+    cuts, energies = objective.cut_back(origin, [down, up])
+    fraction = CCD_SAFETY * lowest / 5e-3  # of the way down, where the lowest vertex keeps 20 % of its gap
+    assert torch.allclose(cuts[0], origin + fraction[:, None, None] * (down - origin), rtol=0, atol=1e-15)
+    assert torch.equal(cuts[1], up)
+    for position, energy in zip((origin, *cuts), energies, strict=True):
+        assert torch.allclose(energy, objective.energy(position), rtol=1e-12, atol=0)
+    objective.compiled = True
+    fast_cuts, fast_energies = objective.cut_back(origin, [down, up])
+    assert torch.allclose(fast_cuts, cuts, rtol=0, atol=1e-15)
+    assert torch.allclose(fast_energies, energies, rtol=1e-10, atol=0)
+    inside = origin.clone()
+    inside[0, 7, 1] = -1e-4
+    with pytest.raises(ValueError, match=r"not admissible: vertices \[7\]"):
+        objective.cut_back(inside, [down, up])
 
 
 def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
