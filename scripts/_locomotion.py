@@ -345,6 +345,11 @@ def write_outputs(
     return written
 
 
+# With --compile, the mean step time is also given without this much simulated time at the start,
+# whose steps include the compilation.
+COMPILED_WARMUP = 0.5
+
+
 def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, float]) -> str:
     """Size, solver effort, timing and the figures, a few lines."""
     iterations = [s.iterations for s in rollout.stats]
@@ -362,6 +367,15 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
         f"lengths in {figures['seconds']:.3g} s: {figures['speed (m/s)']:+.4f} m/s = "
         f"{figures['speed (body lengths/s)']:+.3f} body lengths/s",
     ]
+    warmed = round(COMPILED_WARMUP / rollout.dt)
+    if getattr(scene.solver, "compile", False) and len(step_seconds) > 2 * warmed:
+        # the first steps compile (seconds each): the mean above counts them, this one does not
+        steady = statistics.fmean(step_seconds[warmed:])
+        lines.insert(
+            2,
+            f"  compiled: from {COMPILED_WARMUP:g} s on (compilation done) mean {1e3 * steady:.1f} ms per "
+            f"step = {rollout.dt / steady:.2f}x real time",
+        )
     lines += [
         f"  {key}: {value:.6g}" for key, value in figures.items() if not key.startswith(("distance", "speed"))
     ]
