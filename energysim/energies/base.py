@@ -38,8 +38,9 @@ class EnergyTerm(nn.Module):
     def max_step(self, x: Tensor, dx: Tensor) -> Tensor | None:
         """Largest α ≤ 1 such that `x + α dx` is admissible for this term, shape `[B]`; None: no limit.
 
-        The hook the line search starts from (contact terms use it to stay outside obstacles). Raises
-        ValueError where `x` itself is not admissible.
+        The hook the line search starts from (contact terms use it to stay outside obstacles). A term
+        whose states can be inadmissible overrides it to raise ValueError, saying why, where `x` itself
+        is (as obstacles do); the default returns `step_limit`, the unchecked part, as it is.
         """
         return self.step_limit(x, dx)
 

@@ -251,14 +251,13 @@ def line_step(
     Starts from the largest fraction every term allows (`objective.trial`, one compiled call where the
     objective compiles). That first trial is evaluated with its gradient, which the solver needs next
     anyway: when every entry accepts it (the common case near a minimum), the search costs no energy
-    evaluation of its own. Otherwise the
-    energy's rounding noise is measured (`energy_noise`) and the trial judged again with that
-    allowance. Where even the trial's predicted decrease is below the noise, the energy cannot judge
-    the step, and the directional derivatives at both ends do instead (the trapezoidal estimate of
-    the change, exact for a quadratic, which the energy is on that scale); a step that overshoots
-    by that estimate is replaced by the minimiser of the quadratic. A step neither can judge is taken
-    whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
-    (`backtracking_line_search`) and evaluates the gradient where it stopped.
+    evaluation of its own. Otherwise the energy's rounding noise is measured (`energy_noise`) and the
+    trial judged again with that allowance. Where even the trial's predicted decrease is below the
+    noise, the energy cannot judge the step, and the directional derivatives at both ends do instead
+    (the trapezoidal estimate of the change, exact for a quadratic, which the energy is on that scale);
+    a step that overshoots by that estimate is replaced by the minimiser of the quadratic. A step
+    neither can judge is taken whole and flagged `unjudged`. Where some entry still refuses its trial,
+    the search backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
     """
     first = objective.trial(x, direction, gradient)
     initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient
