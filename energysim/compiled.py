@@ -81,8 +81,10 @@ def _energy_and_gradient(
     return total, gradient * free[:, None].to(gradient.dtype)
 
 
-def _step_limit(terms: tuple[EnergyTerm, ...], x: Tensor, direction: Tensor) -> Tensor:
-    # as `Objective.max_step`, unchecked: NaN where x is not admissible
+def step_limit(terms: Sequence[EnergyTerm], x: Tensor, direction: Tensor) -> Tensor:
+    """The largest fraction of `direction` every term allows from `x`, `[B]`, at most 1, unchecked
+    (`EnergyTerm.step_limit`): NaN where `x` is not admissible. Traced inside the compiled functions,
+    and `Objective.max_step`'s eager evaluation."""
     limit = x.new_ones(x.shape[0])
     for term in terms:
         term_limit = term.step_limit(x, direction)
@@ -101,7 +103,7 @@ def _cut_back(
     energies, cuts, limits = [_energy(terms, anchor, action, origin)], [], []
     for target in targets:
         motion = target - origin
-        limit = _step_limit(terms, origin, motion)
+        limit = step_limit(terms, origin, motion)
         cuts.append(origin + limit[:, None, None] * motion)
         energies.append(_energy(terms, anchor, action, cuts[-1]))
         limits.append(limit)
@@ -118,7 +120,7 @@ def _trial(
     direction: Tensor,
     gradient: Tensor,
 ) -> tuple[Tensor, ...]:
-    limit = _step_limit(terms, x, direction)
+    limit = step_limit(terms, x, direction)
     trial_x = x + limit[:, None, None] * direction
     energy, trial_gradient = _energy_and_gradient(terms, anchor, action, free, trial_x)
     slope = (gradient * direction).sum(dim=(-1, -2))

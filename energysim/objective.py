@@ -132,12 +132,15 @@ class Objective:
         return scaled.abs().amax(dim=(-1, -2))
 
     def max_step(self, x: Tensor, dx: Tensor) -> Tensor:
-        """Largest admissible step fraction along `dx`, shape `[B]`, at most 1."""
-        limit = x.new_ones(x.shape[0])
-        for term in self.terms:
-            term_limit = term.max_step(x, dx)
-            if term_limit is not None:
-                limit = torch.minimum(limit, term_limit)
+        """Largest admissible step fraction along `dx`, shape `[B]`, at most 1.
+
+        Raises:
+            ValueError: `x` is not admissible for some term (that term's `max_step` says why).
+        """
+        limit = compiled_functions.step_limit(self.terms, x, dx)
+        if not bool(torch.isfinite(limit).all()):
+            for term in self.terms:
+                term.max_step(x, dx)  # the term where x is not admissible raises
         return limit
 
     def trial(self, x: Tensor, direction: Tensor, gradient: Tensor) -> LineTrial:

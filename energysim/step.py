@@ -51,7 +51,7 @@ def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
 
 
 def _limits_steps(terms: list[EnergyTerm]) -> bool:
-    return any(type(term).max_step is not EnergyTerm.max_step for term in terms)
+    return any(type(term).step_limit is not EnergyTerm.step_limit for term in terms)
 
 
 def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: float) -> Tensor:

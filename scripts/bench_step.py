@@ -237,13 +237,14 @@ FAR_BELOW = 1.0  # m: where the out-of-reach ground lies, below y = 0
 
 
 class CountingGround(es.Ground):
-    """`es.Ground` that counts its CCD calls (`max_step`: once per line search and warm start)."""
+    """`es.Ground` that counts its CCD calls (`step_limit`: once per line search and warm-start
+    candidate; `max_step` is it plus the check of the start)."""
 
     ccd_calls = 0
 
-    def max_step(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+    def step_limit(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         self.ccd_calls += 1
-        return super().max_step(x, dx)
+        return super().step_limit(x, dx)
 
 
 def build_landing_scene(
@@ -442,7 +443,7 @@ def obstacle_overhead(
                 tets=scene.mesh.num_elements,
                 scene=label,
                 terms=" + ".join(type(term).__name__.replace("CountingGround", "Ground") for term in terms),
-                ccd_terms=sum(type(term).max_step is not es.EnergyTerm.max_step for term in terms),
+                ccd_terms=sum(type(term).step_limit is not es.EnergyTerm.step_limit for term in terms),
                 ccd_calls_per_step=calls / len(times[label]),
                 samples=len(times[label]),
                 ms_per_step=ms,
