@@ -7,13 +7,16 @@ B / (median wall time of one call); the spread beside it is the interquartile ra
 Random activations switch every muscle at every step, which is harder for the solver than a
 gait: the Newton iterations per step are in the table. `--activation-time-constant` τ (s) turns on
 the env's first-order activation dynamics, which low-pass the random commands before the muscles see
-them. Runs use `--threads` intra-op threads (default 1, best for meshes this small on a shared
+them. `--compile` evaluates the step objective by compiled functions (`solver_compile=True`); its
+compilation happens in the untimed warm-up steps, so give it a few (`--warmup 10`). Runs use
+`--threads` intra-op threads (default 1, best for meshes this small on a shared
 machine).
 
 Run:  python scripts/bench_env.py                                    # worm and quadruped, B = 1, 16, 64
       python scripts/bench_env.py --creatures worm --batch-sizes 1 4 --steps 3 --no-plot   # quick
       python scripts/bench_env.py --profile                          # also where the time goes
       python scripts/bench_env.py --activation-time-constant 0.05    # muscles with τ = 50 ms
+      python scripts/bench_env.py --compile --warmup 10 --out docs/benchmarks/bench_env_compiled
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
 """
 
@@ -56,6 +59,7 @@ class Row:
     newton_iterations: float
     failures: int
     activation_time_constant: float | None = None
+    compiled: bool = False
 
 
 def quartiles(values: list[float]) -> tuple[float, float, float]:
@@ -74,9 +78,11 @@ def bench(
     device: str,
     profile: bool,
     activation_time_constant: float | None = None,
+    compile_objective: bool = False,
 ) -> Row:
     """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
-    constant `activation_time_constant` in s, None: off); one table row."""
+    constant `activation_time_constant` in s, None: off; compiled objective evaluations with
+    `compile_objective`); one table row."""
     env = CreatureVectorEnv(
         batch,
         creature,
@@ -84,6 +90,7 @@ def bench(
         dt=1 / 60,
         device=device,
         activation_time_constant=activation_time_constant,
+        solver_compile=compile_objective,
     )
     env.reset(seed=0)
     env.action_space.seed(0)
@@ -126,6 +133,7 @@ def bench(
         newton_iterations=statistics.fmean(iterations) if iterations else float("nan"),
         failures=failures,
         activation_time_constant=activation_time_constant,
+        compiled=compile_objective,
     )
 
 
@@ -139,9 +147,11 @@ def activation_text(time_constant: float | None) -> str:
 def markdown(rows: list[Row], threads: int) -> str:
     """The results as a markdown table."""
     dynamics = activation_text(rows[0].activation_time_constant)
+    evaluations = "compiled objective evaluations" if rows[0].compiled else "eager evaluations"
     lines = [
         "Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, float64, "
-        f"Newton–CG (tol 1e-4 m/s), random actions (seed 0), {dynamics}, "
+        f"Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted), {evaluations}, random actions (seed 0), "
+        f"{dynamics}, "
         f"{threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
         "range. Newton iterations: per physics step, the batched solve's count (its slowest entry).",
@@ -205,6 +215,9 @@ def main(argv: list[str] | None = None) -> list[Row]:
         default=None,
         help="τ in s of the env's activation dynamics (default: none, the action is the activation)",
     )
+    parser.add_argument(
+        "--compile", action="store_true", help="compiled objective evaluations (compile in --warmup)"
+    )
     parser.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
@@ -215,7 +228,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
     configure_cpu(args.threads)
     rows = [
-        bench(creature, batch, args.steps, args.warmup, args.device, args.profile, tau)
+        bench(creature, batch, args.steps, args.warmup, args.device, args.profile, tau, args.compile)
         for creature in args.creatures
         for batch in args.batch_sizes
     ]

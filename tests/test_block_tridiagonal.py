@@ -21,6 +21,7 @@ from energysim.block_tridiagonal import (
 from energysim.creatures import resting_state
 from energysim.implicit import step_terms
 from energysim.objective import Objective
+from energysim.optim.newton_cg import INDEFINITE_SHIFTS
 
 RTOL = 1e-10
 
@@ -117,7 +118,8 @@ def test_block_solve_equals_dense_solve_on_the_worm_hessian(fix: bool) -> None:
         torch.testing.assert_close(solution[:, fixed], rhs[:, fixed], rtol=RTOL, atol=0.0)
 
 
-def test_indefinite_entry_is_unsolved_and_the_others_exact() -> None:
+@pytest.mark.parametrize("method", ["levels", "banded", "dense"])
+def test_indefinite_entry_is_unsolved_and_the_others_exact(method: str) -> None:
     # 3 mm of noise on 1 cm elements inverts some tets: that entry's Hessian is indefinite
     scene, state, action = _worm_batch([1e-4, 3e-3, 0.0])
     objective, x = _objective(scene, state, action)
@@ -126,13 +128,35 @@ def test_indefinite_entry_is_unsolved_and_the_others_exact() -> None:
     assert torch.linalg.cholesky_ex(dense).info.ne(0).tolist() == [False, True, False]
     _, gradient = objective.energy_and_gradient(x)
     wanted = torch.ones(3, dtype=torch.bool)
-    direction, solved = es.NewtonCG(direct="levels")._direct(operator, -gradient, x, wanted)
+    direction, solved = es.NewtonCG(direct=method)._direct(operator, -gradient, x, wanted)
     assert solved.tolist() == [True, False, True]
     expected = _dense_solve(dense, -gradient.reshape(3, -1, 1)).reshape(x.shape)
     for entry in (0, 2):
         error = (direction[entry] - expected[entry]).norm() / expected[entry].norm()
         assert float(error) < RTOL
     assert bool((direction[1] == 0).all())
+
+
+@pytest.mark.parametrize("method", ["levels", "banded", "dense"])
+def test_indefinite_entry_takes_the_first_shift_that_factorises(method: str) -> None:
+    # Levenberg–Marquardt by hand: H + τ|diag H| for τ = 1e-2, 1e-1, ... until Cholesky succeeds
+    scene, state, action = _worm_batch([1e-4, 3e-3, 0.0])
+    objective, x = _objective(scene, state, action)
+    operator = objective.hessian(x)
+    dense = operator.dense(x)
+    _, gradient = objective.energy_and_gradient(x)
+    solver = es.NewtonCG(direct=method, indefinite="shift")
+    direction, solved = solver._direct(operator, -gradient, x, torch.ones(3, dtype=torch.bool))
+    assert solved.tolist() == [True, True, True]
+    indefinite = dense[1]
+    for shift in INDEFINITE_SHIFTS:
+        shifted = indefinite + shift * torch.diag(indefinite.diagonal().abs())
+        if int(torch.linalg.cholesky_ex(shifted).info) == 0:
+            break
+    expected = _dense_solve(shifted[None], -gradient[1].reshape(1, -1, 1)).reshape(x[1].shape)
+    error = (direction[1] - expected).norm() / expected.norm()
+    assert float(error) < RTOL
+    assert float((direction[1] * gradient[1]).sum()) < 0.0  # downhill, as a positive definite system gives
 
 
 @pytest.mark.parametrize("method", ["levels", "banded"])

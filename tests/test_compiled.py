@@ -133,6 +133,26 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         assert float(bands[0, dof, 0]) == 1.0 and float(bands[0, dof, 1:].abs().max()) == 0.0
 
 
+def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one():
+    # `indefinite="shift"`: the compiled band path keeps H to factorise H + τ|diag H| again. Full
+    # random activations at rest make the worm's H indefinite
+    scene, objective, x = _worm_objective(batch=2)
+    dense = objective.hessian(x).dense(x)
+    assert torch.linalg.cholesky_ex(dense).info.ne(0).tolist() == [True, True]
+    _, gradient = objective.energy_and_gradient(x)
+    wanted = torch.ones(2, dtype=torch.bool)
+    eager, eager_solved = es.NewtonCG(direct="banded", indefinite="shift")._direct(
+        objective.hessian(x), -gradient, x, wanted
+    )
+    objective.compiled = True
+    solver = es.NewtonCG(direct="banded", indefinite="shift", compile=True)
+    direction, solved = solver._compiled_direct(objective, -gradient, x, wanted)
+    assert solved.tolist() == eager_solved.tolist() == [True, True]
+    error = (direction - eager).flatten(1).norm(dim=1) / eager.flatten(1).norm(dim=1)
+    assert float(error.max()) < 1e-8
+    assert bool(((direction * gradient).sum(dim=(1, 2)) < 0).all())
+
+
 def test_a_compiled_walk_takes_the_same_steps_as_an_eager_one():
     # the worm's gait for 0.2 s, with the dense direct solve from the compiled Hessian
     scene = load_creature("worm").scene(1 / 60, 0.8)

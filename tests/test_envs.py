@@ -180,9 +180,9 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
     assert info["reward_forward"] == pytest.approx(forward_weight * info["x_velocity"], rel=1e-12)
     assert np.array_equal(info["activation"], clipped)  # without a time constant, the action
 
-    # the same three steps, simulated apart from the env from its start state
+    # the same three steps, simulated apart from the env from its start state, with the env's solver
     creature = load_creature("crawler2d")
-    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4))
+    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4, indefinite="shift"))
     states = [start]
     for _ in range(frame_skip):
         states.append(es.step(scene, states[-1], torch.from_numpy(clipped)).state)
@@ -271,7 +271,7 @@ def test_activation_dynamics_are_the_exact_step_response() -> None:
 
     # the physics saw the filtered activation of every physics step, not the command
     creature = load_creature("crawler2d")
-    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4))
+    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4, indefinite="shift"))
     state = start
     for k in range(1, 2 * frame_skip + 1):
         activation = torch.from_numpy(command * (1 - np.exp(-k * dt / tau)))
@@ -476,6 +476,8 @@ def test_bad_arguments_raise_clear_errors() -> None:
         CreatureVectorEnv(2, "worm", activation_time_constant=-1.0)
     with pytest.raises(ValueError, match="activation_time_constant"):
         envs.CreatureEnvConfig(activation_time_constant=float("nan"))
+    with pytest.raises(ValueError, match="solver_compile must be True or False"):
+        envs.CreatureEnvConfig(solver_compile="yes")
     with pytest.raises(ValueError, match="render_mode"):
         CreatureEnv("worm", render_mode="human")
     env = CreatureEnv("worm")

@@ -63,6 +63,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         friction: Coulomb coefficient of the ground.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
         solver_max_iter: most Newton iterations per physics step; more is a numerical failure.
+        solver_compile: compiled objective evaluations (see `CreatureEnvConfig`).
         max_episode_steps: truncate after this many env steps; None: never (`gymnasium.make`
             truncates through the registration's `TimeLimit` instead).
         num_markers: marker vertices in the observation.
@@ -93,6 +94,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         friction: float = 0.8,
         solver_tol: float = 1e-4,
         solver_max_iter: int = 100,
+        solver_compile: bool = False,
         max_episode_steps: int | None = None,
         num_markers: int = 12,
         activation_time_constant: float | None = None,
@@ -110,6 +112,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             friction=friction,
             solver_tol=solver_tol,
             solver_max_iter=solver_max_iter,
+            solver_compile=solver_compile,
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,
             activation_time_constant=activation_time_constant,
