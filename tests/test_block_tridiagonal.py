@@ -118,17 +118,23 @@ def test_block_solve_equals_dense_solve_on_the_worm_hessian(fix: bool) -> None:
         torch.testing.assert_close(solution[:, fixed], rhs[:, fixed], rtol=RTOL, atol=0.0)
 
 
-@pytest.mark.parametrize("method", ["levels", "banded", "dense"])
-def test_indefinite_entry_is_unsolved_and_the_others_exact(method: str) -> None:
-    # 3 mm of noise on 1 cm elements inverts some tets: that entry's Hessian is indefinite
+def _indefinite_directions(solver: es.NewtonCG) -> tuple[torch.Tensor, ...]:
+    """`solver`'s direct Newton directions for three worms whose middle one has an indefinite
+    Hessian (3 mm of noise on 1 cm elements inverts some tets): the directions, which entries they
+    solved, the dense Hessians, the gradients and x."""
     scene, state, action = _worm_batch([1e-4, 3e-3, 0.0])
     objective, x = _objective(scene, state, action)
     operator = objective.hessian(x)
     dense = operator.dense(x)
     assert torch.linalg.cholesky_ex(dense).info.ne(0).tolist() == [False, True, False]
     _, gradient = objective.energy_and_gradient(x)
-    wanted = torch.ones(3, dtype=torch.bool)
-    direction, solved = es.NewtonCG(direct=method)._direct(operator, -gradient, x, wanted)
+    direction, solved = solver._direct(operator, -gradient, x, torch.ones(3, dtype=torch.bool))
+    return direction, solved, dense, gradient, x
+
+
+@pytest.mark.parametrize("method", ["levels", "banded", "dense"])
+def test_indefinite_entry_is_unsolved_and_the_others_exact(method: str) -> None:
+    direction, solved, dense, gradient, x = _indefinite_directions(es.NewtonCG(direct=method))
     assert solved.tolist() == [True, False, True]
     expected = _dense_solve(dense, -gradient.reshape(3, -1, 1)).reshape(x.shape)
     for entry in (0, 2):
@@ -140,13 +146,8 @@ def test_indefinite_entry_is_unsolved_and_the_others_exact(method: str) -> None:
 @pytest.mark.parametrize("method", ["levels", "banded", "dense"])
 def test_indefinite_entry_takes_the_first_shift_that_factorises(method: str) -> None:
     # Levenberg–Marquardt by hand: H + τ|diag H| for τ = 1e-2, 1e-1, ... until Cholesky succeeds
-    scene, state, action = _worm_batch([1e-4, 3e-3, 0.0])
-    objective, x = _objective(scene, state, action)
-    operator = objective.hessian(x)
-    dense = operator.dense(x)
-    _, gradient = objective.energy_and_gradient(x)
     solver = es.NewtonCG(direct=method, indefinite="shift")
-    direction, solved = solver._direct(operator, -gradient, x, torch.ones(3, dtype=torch.bool))
+    direction, solved, dense, gradient, x = _indefinite_directions(solver)
     assert solved.tolist() == [True, True, True]
     indefinite = dense[1]
     for shift in INDEFINITE_SHIFTS:
