@@ -39,7 +39,7 @@ from energysim.banded import (
 )
 from energysim.block_tridiagonal import LevelLayout
 from energysim.caching import IdentityCache
-from energysim.energies.base import ElementEnergy, EnergyTerm
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks
 
 
 def has_closed_forms(terms: Sequence[EnergyTerm], *, hessian: bool) -> bool:
@@ -246,10 +246,6 @@ def cut_back(
     return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets))
 
 
-def _blocks_of(term: EnergyTerm) -> bool:
-    return not term.is_linear and not hasattr(term, "hessian_diagonal")
-
-
 _GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
 
 
@@ -257,7 +253,7 @@ def _element_groups(terms: Sequence[EnergyTerm]) -> list[tuple[int, ...]]:
     """The indices of the terms with element blocks, grouped by equal `element_vertices` (a muscle
     term on every element of the mesh shares the elastic term's elements): one scatter per group.
     Cached per tuple of vertex tensors."""
-    members = [index for index, term in enumerate(terms) if _blocks_of(term)]
+    members = [index for index, term in enumerate(terms) if has_element_blocks(term)]
     vertices = [terms[index].element_vertices for index in members]
 
     def build() -> list[list[int]]:

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from energysim.assembly import SparsityPattern, assemble, cached_pattern
 from energysim.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
-from energysim.energies.base import ElementEnergy, EnergyTerm
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks
 
 EnergyFn = Callable[[Tensor], Tensor]
 
@@ -216,7 +216,7 @@ def hessian_operator(
             continue
         if hasattr(term, "hessian_diagonal"):
             diagonal = term.hessian_diagonal() if diagonal is None else diagonal + term.hessian_diagonal()
-        elif use_element_blocks and isinstance(term, ElementEnergy):
+        elif use_element_blocks and has_element_blocks(term):
             block = element_hessian(term, x, action)
             blocks.append((term.element_vertices, project_positive_semidefinite(block) if project else block))
         else:

@@ -11,7 +11,7 @@ from torch import Tensor
 from energysim import compiled as compiled_functions
 from energysim.block_tridiagonal import LevelLayout
 from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_operator
-from energysim.energies.base import ElementEnergy, EnergyTerm
+from energysim.energies.base import EnergyTerm, has_element_blocks
 
 
 @dataclass(frozen=True)
@@ -202,8 +202,7 @@ class Objective:
     def element_groups(self) -> list[Tensor]:
         """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the
         order `hessian` assembles them (what the sparsity pattern is built from)."""
-        blocks = [term for term in self.terms if isinstance(term, ElementEnergy) and not term.is_linear]
-        return [term.element_vertices for term in blocks if not hasattr(term, "hessian_diagonal")]
+        return [term.element_vertices for term in self.terms if has_element_blocks(term)]
 
     def dense_hessian(self, x: Tensor) -> Tensor | None:
         """∇²E(x) as dense `[B, n·d, n·d]` matrices by the compiled function, fixed DOFs eliminated;

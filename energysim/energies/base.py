@@ -176,3 +176,10 @@ def check_positive(value: Tensor, name: str, unit: str) -> None:
     if bad.any():
         index = torch.nonzero(bad.reshape(-1)).reshape(-1)[:10].tolist()
         raise ValueError(f"{name} must be finite and > 0 {unit}; offending entries {index}")
+
+
+def has_element_blocks(term: EnergyTerm) -> bool:
+    """Whether `term` enters Hessians as element blocks: a nonlinear element term without a
+    per-vertex diagonal (`hessian_diagonal`). The eager assembly, the sparsity pattern and the
+    compiled scatter all ask this, so they agree on which blocks there are."""
+    return isinstance(term, ElementEnergy) and not term.is_linear and not hasattr(term, "hessian_diagonal")

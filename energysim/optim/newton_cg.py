@@ -323,8 +323,10 @@ class NewtonCG(Solver):
             if bands is None:
                 return None
             flat_rhs = rhs.reshape(rhs.shape[0], -1)
+            if self.indefinite != "shift":
+                return _band_directions(solve_bands(bands, flat_rhs, band), rhs, wanted)
             # the band solve overwrites its input with the factors: a shifted retry needs H itself
-            pristine = bands.clone() if self.indefinite == "shift" else bands
+            pristine = bands.clone()
             direction, solved = _band_directions(solve_bands(bands, flat_rhs, band), rhs, wanted)
 
             def solve_band(rows: Tensor, shift: float) -> tuple[Tensor, Tensor]:
@@ -332,7 +334,7 @@ class NewtonCG(Solver):
                 shifted[..., 0] += shift * shifted[..., 0].abs()  # column 0 holds the diagonal
                 return _band_directions(solve_bands(shifted, flat_rhs[rows], band), rhs[rows], _all(rows))
 
-            return self._shifted(solve_band, direction, solved, wanted)
+            return _retry_shifted(solve_band, direction, solved, wanted)
         dense = objective.dense_hessian(x)
         if dense is None:
             return None
