@@ -256,3 +256,21 @@ def test_backward_through_the_band_solve_equals_the_dense_one(monkeypatch: pytes
     monkeypatch.setattr(sys.modules["energysim.implicit"], "prefer_band", lambda *args: False)
     dense = gradient()
     assert float((band - dense).abs().max()) < 1e-9 * float(dense.abs().max())
+
+
+def test_converged_batch_entries_build_no_preconditioner(monkeypatch: pytest.MonkeyPatch) -> None:
+    # an entry that has converged gets no direction (slope 0): counting it as going uphill made the
+    # solver build the whole batch's Hessian operator for a preconditioned gradient nobody used
+    scene, state, action = _worm_batch([0.0, 2e-3])
+    state[0] = resting_state(scene)
+    action[0] = 0.0
+    built = []
+    original = es.NewtonCG._preconditioner
+    monkeypatch.setattr(es.NewtonCG, "_preconditioner", lambda *args: built.append(1) or original(*args))
+    solver = es.NewtonCG(tol=1e-6, indefinite="shift", compact_below=0.0)
+    together = es.step(scene, state, action, solver=solver)
+    alone = [es.step(scene, state[entry], action[entry], solver=solver) for entry in range(2)]
+    assert alone[0].stats.iterations < alone[1].stats.iterations == together.stats.iterations
+    assert built == []
+    for entry in range(2):
+        assert torch.allclose(together.state[entry], alone[entry].state, rtol=0, atol=1e-10)
