@@ -30,10 +30,17 @@ BAND_MARGIN = 6
 BAND_MAX_BATCH = 4
 
 
-def prefer_band(layout: LevelLayout, batch: int, num_dofs: int, device: torch.device) -> bool:
-    """Whether a band factorisation is estimated cheaper than a dense one (N = `num_dofs`)."""
+def prefer_band(
+    layout: LevelLayout, batch: int, num_dofs: int, device: torch.device, *, compiled: bool = False
+) -> bool:
+    """Whether a band factorisation is estimated cheaper than a dense one (N = `num_dofs`).
+
+    With `compiled` the Hessian is assembled straight into band storage by a compiled function, and
+    the band path wins for any batch: on 16 worms with random actions it took 608 ms per env step
+    against 1,004 ms for the level solve (whose Hessian is assembled eagerly), on 64 worms 3.3 s
+    against 4.4 s, and a single 810-tet cantilever 0.45 against 0.77 s per simulated second."""
     narrow = BAND_MARGIN * (layout.half_bandwidth + 1) ** 2 < num_dofs**2
-    return device.type == "cpu" and batch <= BAND_MAX_BATCH and narrow
+    return device.type == "cpu" and (compiled or batch <= BAND_MAX_BATCH) and narrow
 
 
 def band_cholesky_solve(dense: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor]:

@@ -201,10 +201,14 @@ def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> Non
         objective, x = _objective(scene, state[:batch], action[:batch])
         groups = [elements for elements, _ in objective.hessian(x).blocks]
         assert solver._method_for(groups, x) == method
+        # a compiled Hessian is assembled in band storage: the band path for any batch
+        assert solver._method_for(groups, x, compiled=True) == "banded"
     # LAPACK's band routines are CPU only: elsewhere one worm is factorised dense
     layout = solver._layout(groups, x[:1])
-    assert not prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cuda"))
+    for compiled in (False, True):
+        assert not prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cuda"), compiled=compiled)
     assert prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cpu"))
+    assert not prefer_band(layout, 16, x.shape[1] * x.shape[2], torch.device("cpu"))
 
 
 def test_unknown_direct_method_is_refused() -> None:

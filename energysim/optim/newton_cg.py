@@ -149,7 +149,9 @@ class NewtonCG(Solver):
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
             picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18,
             S = 27, u = 44; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
-            levels for batches of them (≈ 6× faster per Newton direction at B = 16).
+            levels for batches of them (≈ 6× faster per Newton direction at B = 16); with
+            `compile=True` banded on the CPU for any batch (its Hessian is then assembled in band
+            storage by a compiled function).
         compact_below: in a batch, once at most this fraction of the entries still iterates, go on
             with those alone (`Objective.subset`: the step builds their objective from their slice
             of the state), instead of computing on every entry until the slowest has converged.
@@ -317,7 +319,7 @@ class NewtonCG(Solver):
         ):
             return None
         groups = objective.element_groups()
-        method = self._method_for(groups, x)
+        method = self._method_for(groups, x, compiled=True)
         if method == "levels":
             return None
         band = self._band(method, groups, x)
@@ -394,15 +396,19 @@ class NewtonCG(Solver):
             return torch.zeros_like(rhs), none
         return self._dense_directions(dense, rhs, wanted, self._band(method, groups, x))
 
-    def _method_for(self, element_groups: list[Tensor], x: Tensor) -> str:
+    def _method_for(self, element_groups: list[Tensor], x: Tensor, *, compiled: bool = False) -> str:
         """"dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
-        `element_groups`: `direct` unless "auto", else the cheapest by the cost estimates."""
+        `element_groups`: `direct` unless "auto", else the cheapest by the cost estimates. With
+        `compiled` the Hessian can be assembled by a compiled function straight into band storage
+        (not into level blocks), which makes the band path the cheaper one wherever it runs."""
         if self.direct != "auto":
             return self.direct
         if not element_groups:
             return "dense"  # no element couples vertices: nothing to order by levels
         batch, n, dim = x.shape
         layout = self._layout(element_groups, x)
+        if compiled and prefer_band(layout, batch, n * dim, x.device, compiled=True):
+            return "banded"
         if prefer_levels(layout, batch, n * dim):
             return "levels"
         return "banded" if prefer_band(layout, batch, n * dim, x.device) else "dense"
