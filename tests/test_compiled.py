@@ -169,6 +169,25 @@ def test_a_compiled_walk_takes_the_same_steps_as_an_eager_one():
     assert torch.allclose(runs[True][0], runs[False][0], rtol=0, atol=1e-10)
 
 
+def test_a_new_time_step_compiles_no_new_graph():
+    # h reaches the compiled functions as data (the inertia's M/h², friction's ε_v h): as floats it
+    # was baked into each graph, one per h and per TR-BDF2 stage, and past torch.compile's limit of
+    # 8 graphs per function the evaluations silently fell back to eager
+    scene = load_creature("worm").scene(1 / 60, 0.8)
+    solver = es.NewtonCG(tol=1e-6, compile=True)
+    action = torch.sin(torch.arange(10, dtype=torch.float64))
+    state = es.step(scene, resting_state(scene), action, solver=solver).state
+    counters = torch._dynamo.utils.counters
+    graphs = counters["stats"]["unique_graphs"]
+    assert graphs > 0
+    for dt in (1 / 50, 1 / 75, 1 / 100, 1 / 125, 1 / 150):
+        scene.dt = dt
+        result = es.step(scene, state, action, solver=solver)
+        assert result.stats.converged
+        state = result.state
+    assert counters["stats"]["unique_graphs"] == graphs
+
+
 class _PlainSpring(es.EnergyTerm):
     """A term with no closed forms: only its energy, for autograd."""
 

@@ -31,30 +31,30 @@ def _norm_and_square(u: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(positive, torch.sqrt(safe), torch.zeros_like(square)), square
 
 
-def mollified_slip(u: Tensor, smoothing: float) -> Tensor:
+def mollified_slip(u: Tensor, smoothing: float | Tensor) -> Tensor:
     """f0(‖u‖) in m, over the last axis of `u` (tangential displacements in m); ε = `smoothing` in m."""
     length, square = _norm_and_square(u)
     ramp = square / smoothing - length * square / (3.0 * smoothing**2) + smoothing / 3.0
     return torch.where(length < smoothing, ramp, length)
 
 
-def mollified_slip_gradient(u: Tensor, smoothing: float) -> Tensor:
+def mollified_slip_gradient(u: Tensor, smoothing: float | Tensor) -> Tensor:
     """∇ₓ f0(‖P(x − x_n)‖) = f1(y)/y · u, shape `[..., d]` (dimensionless); f1/y = (2 − y/ε)/ε below ε."""
     length, _ = _norm_and_square(u)
     below = length < smoothing
-    safe_length = torch.where(below, torch.full_like(length, smoothing), length)
+    safe_length = torch.where(below, smoothing, length)
     over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
     return over_length[..., None] * u
 
 
-def mollified_slip_hessian(u: Tensor, smoothing: float, projector: Tensor) -> Tensor:
+def mollified_slip_hessian(u: Tensor, smoothing: float | Tensor, projector: Tensor) -> Tensor:
     """∇²ₓ f0(‖P(x − x_n)‖) = (f1/y) P + (f1′ − f1/y) ûûᵀ, shape `[..., d, d]` (1/m).
 
     Below ε: f1/y = (2 − y/ε)/ε and f1′ − f1/y = −y/ε², both finite at y = 0; beyond: 1/y and −1/y.
     """
     length, _ = _norm_and_square(u)
     below = length < smoothing
-    safe_length = torch.where(below, torch.full_like(length, smoothing), length)
+    safe_length = torch.where(below, smoothing, length)
     over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
     along = torch.where(below, -length / smoothing**2, -1.0 / safe_length)
     unit = u / torch.where(length > 0, length, torch.ones_like(length))[..., None]
@@ -93,7 +93,8 @@ class LaggedFriction(ElementEnergy):
         eye = torch.eye(normals.shape[-1], dtype=normals.dtype, device=normals.device)
         self.projector = eye - normals[..., :, None] * normals[..., None, :]
         self.weight = friction * normal_force
-        self.smoothing = smoothing
+        # a tensor, like the inertia's M/h²: compiled evaluations then need no new graph for a new h
+        self.smoothing = torch.as_tensor(smoothing, dtype=normals.dtype, device=normals.device)
 
     def _slip(self, element_positions: Tensor) -> Tensor:
         displacement = element_positions[..., 0, :] - self.previous_positions
