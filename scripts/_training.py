@@ -88,12 +88,15 @@ class Task:
         episode_steps: env steps per episode (training and evaluation), each frame_skip · h long.
         frame_skip: physics steps per env step.
         solver_tol: the env's Newton–CG velocity-residual tolerance in m/s.
+        solver_compile: the env evaluates its step objective by compiled functions
+            (`CreatureEnvConfig.solver_compile`): faster steps after a compilation of 15 s to a minute.
     """
 
     creature: str = "worm"
     episode_steps: int = 120
     frame_skip: int = 1
     solver_tol: float = 1e-4
+    solver_compile: bool = False
 
     def __post_init__(self) -> None:
         from energysim.creatures import CREATURES
@@ -103,6 +106,8 @@ class Task:
         check_integer(self.episode_steps, "episode_steps", 1)
         check_integer(self.frame_skip, "frame_skip", 1)
         check_number(self.solver_tol, "solver_tol", 0.0, strict=True)
+        if not isinstance(self.solver_compile, bool):
+            raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
 
     def vector_env(self, num_envs: int) -> Any:
         """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
@@ -113,6 +118,7 @@ class Task:
             self.creature,
             frame_skip=self.frame_skip,
             solver_tol=self.solver_tol,
+            solver_compile=self.solver_compile,
             max_episode_steps=self.episode_steps,
         )
 
@@ -124,6 +130,7 @@ class Task:
             creature=self.creature,
             frame_skip=self.frame_skip,
             solver_tol=self.solver_tol,
+            solver_compile=self.solver_compile,
             max_episode_steps=self.episode_steps,
         )
         return CreatureSimulation(config)
@@ -490,6 +497,17 @@ def set_rng_state(state: dict[str, Any]) -> None:
     random.setstate(state["python"])
 
 
+# Settings a resumed run may change: how long it trains, and whether the physics is compiled (the
+# same equations; the trajectories then agree to the solver's tolerance, not to the last bit).
+RESUMABLE_CHANGES = ("total_steps", "solver_compile")
+
+
+def checkpoint_settings(method: str, settings: Any) -> dict[str, Any]:
+    """What a checkpoint of a `method` run with `settings` (a dataclass) records and a resume checks."""
+    fixed = {key: value for key, value in asdict(settings).items() if key not in RESUMABLE_CHANGES}
+    return {"method": method, **fixed}
+
+
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> Path:
     """`payload` (tensors, numbers, strings and containers of them) with torch.save, atomically."""
     return atomic_write(path, lambda temporary: torch.save(payload, temporary))
@@ -608,6 +626,11 @@ def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method:
     add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
     add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
     add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
+    add(
+        "--compile",
+        action="store_true",
+        help="compiled physics evaluations: faster env steps after 15 s to a minute of compiling",
+    )
     add("--out", type=Path, default=Path("out") / f"train_{method}", help="output folder")
     add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     add("--threads", type=int, default=1, help="torch intra-op threads")

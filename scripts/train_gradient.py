@@ -18,6 +18,7 @@ entry i from seed (seed, e, i)). Evaluation, learning curve, checkpoints and out
 Run:  python scripts/train_gradient.py                      # worm, about 15 min on 2 cores
       python scripts/train_gradient.py --total-steps 240 --eval-every 120 --eval-episodes 2 --out /tmp/g
       python scripts/train_gradient.py --resume             # continue an interrupted run's curve
+      python scripts/train_gradient.py --compile            # compiled physics: faster steps after compiling
 Writes to --out: curve.csv, checkpoint.pt, training.png, rollout/frame_*.vtu + frame.pvd, NAME.gif.
 """
 
@@ -42,6 +43,7 @@ from _training import (
     add_common_arguments,
     check_integer,
     check_number,
+    checkpoint_settings,
     evaluate,
     load_checkpoint,
     make_vec_env,
@@ -147,9 +149,10 @@ class Settings:
     eval_every: int = 600
     eval_episodes: int = 2
     solver_tol: float = 1e-4
+    solver_compile: bool = False
 
     def __post_init__(self) -> None:
-        Task(self.creature, self.episode_steps, 1, self.solver_tol)  # checks those
+        Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)  # checks those
         check_integer(self.num_envs, "num_envs", 1)
         check_integer(self.total_steps, "total_steps", 0)
         check_integer(self.window, "window", 1)
@@ -164,7 +167,7 @@ class Settings:
 
     @property
     def task(self) -> Task:
-        return Task(self.creature, self.episode_steps, 1, self.solver_tol)
+        return Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)
 
 
 def window_return(
@@ -242,14 +245,14 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     optimizer = torch.optim.Adam(
         [p for p in policy.parameters() if p.requires_grad], lr=settings.learning_rate
     )
-    fixed = {key: value for key, value in asdict(settings).items() if key != "total_steps"}
+    fixed = checkpoint_settings(METHOD, settings)
     curve: list[CurvePoint] = []
     env_steps = updates = episode = step_in_episode = failures = 0
     wall = 0.0
     state = episode_start(simulation, settings.seed, episode, settings.num_envs)
     activation = torch.zeros(settings.num_envs, simulation.num_actuators, dtype=state.dtype)
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, {"method": METHOD, **fixed})
+        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
         policy.load_state_dict(saved["policy"])
         optimizer.load_state_dict(saved["optimizer"])
         set_rng_state(saved["rng"])
@@ -261,7 +264,7 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
         curve.append(CurvePoint.of(METHOD, env_steps, updates, wall, result, seconds))
         payload = {
-            "settings": {"method": METHOD, **fixed},
+            "settings": fixed,
             "policy": policy.state_dict(),
             "optimizer": optimizer.state_dict(),
             "rng": rng_state(),
@@ -386,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         eval_every=args.eval_every,
         eval_episodes=args.eval_episodes,
         solver_tol=args.solver_tol,
+        solver_compile=args.compile,
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)

@@ -17,6 +17,7 @@ run re-seeds at the same points, so `--resume` continues the very same curve.
 Run:  python scripts/train_ppo.py                       # worm, about 15 min on 2 cores
       python scripts/train_ppo.py --total-steps 256 --eval-every 128 --num-envs 4 --n-steps 32 --out /tmp/p
       python scripts/train_ppo.py --resume              # continue an interrupted run's curve
+      python scripts/train_ppo.py --compile             # compiled physics: faster steps after compiling
 Writes to --out: curve.csv, checkpoint.pt, training.png, rollout/frame_*.vtu + frame.pvd, NAME.gif.
 """
 
@@ -41,6 +42,7 @@ from _training import (
     add_common_arguments,
     check_integer,
     check_number,
+    checkpoint_settings,
     evaluate,
     load_checkpoint,
     make_vec_env,
@@ -81,9 +83,10 @@ class Settings:
     eval_every: int = 960
     eval_episodes: int = 2
     solver_tol: float = 1e-4
+    solver_compile: bool = False
 
     def __post_init__(self) -> None:
-        Task(self.creature, self.episode_steps, 1, self.solver_tol)  # checks those
+        Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)  # checks those
         check_integer(self.num_envs, "num_envs", 1)
         check_integer(self.total_steps, "total_steps", 0)
         check_integer(self.n_steps, "n_steps", 1)
@@ -115,7 +118,7 @@ class Settings:
 
     @property
     def task(self) -> Task:
-        return Task(self.creature, self.episode_steps, 1, self.solver_tol)
+        return Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)
 
 
 def vec_env(settings: Settings, num_envs: int) -> CreatureVecEnv:
@@ -181,11 +184,11 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     venv = vec_env(settings, settings.num_envs)
     evaluation_env = vec_env(settings, settings.eval_episodes)
     model = build_model(settings, venv)
-    fixed = {key: value for key, value in asdict(settings).items() if key != "total_steps"}
+    fixed = checkpoint_settings(METHOD, settings)
     curve: list[CurvePoint] = []
     wall = 0.0
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, {"method": METHOD, **fixed})
+        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
         model.policy.load_state_dict(saved["policy"])
         model.policy.optimizer.load_state_dict(saved["optimizer"])
         set_rng_state(saved["rng"])
@@ -200,7 +203,7 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
             )
         )
         payload = {
-            "settings": {"method": METHOD, **fixed},
+            "settings": fixed,
             "policy": model.policy.state_dict(),
             "optimizer": model.policy.optimizer.state_dict(),
             "rng": rng_state(),
@@ -306,6 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         eval_every=args.eval_every,
         eval_episodes=args.eval_episodes,
         solver_tol=args.solver_tol,
+        solver_compile=args.compile,
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)

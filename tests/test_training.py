@@ -153,6 +153,8 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path) -> None:
         training.Task(episode_steps=0)
     with pytest.raises(ValueError, match="solver_tol must be a finite number > 0"):
         training.Task(solver_tol=0.0)
+    with pytest.raises(ValueError, match="solver_compile must be True or False, got 1"):
+        training.Task(solver_compile=1)
     with pytest.raises(ValueError, match=r"eval_every must be a multiple of num_envs × n_steps = 480"):
         train_ppo.Settings(eval_every=1000)
     with pytest.raises(ValueError, match="batch_size must be at most num_envs × n_steps = 8"):
@@ -233,6 +235,25 @@ def test_ppo_resume_continues_the_uninterrupted_curve(tmp_path: Path) -> None:
         train_ppo.train(
             dataclasses.replace(settings, seed=1), tmp_path / "parts", resume=True, progress=False
         )
+
+
+def test_compiled_physics_is_passed_on_and_may_change_on_resume() -> None:
+    # --compile reaches the env's solver; a resume may switch it (and total_steps), nothing else
+    settings = train_gradient.Settings(solver_compile=True)
+    assert settings.task.vector_env(1).simulation.config.solver_compile
+    assert settings.task.simulation().scene.solver.compile
+    assert not train_gradient.Settings().task.simulation().scene.solver.compile
+    fixed = training.checkpoint_settings("gradient", settings)
+    assert "solver_compile" not in fixed and "total_steps" not in fixed and fixed["method"] == "gradient"
+    eager = train_ppo.Settings(total_steps=960)
+    assert training.checkpoint_settings("ppo", eager) == training.checkpoint_settings(
+        "ppo", dataclasses.replace(eager, solver_compile=True, total_steps=1920)
+    )
+    assert training.checkpoint_settings("ppo", eager) != training.checkpoint_settings(
+        "ppo", dataclasses.replace(eager, seed=1)
+    )
+    parsed = train_ppo.make_parser().parse_args(["--compile"])
+    assert parsed.compile and not train_ppo.make_parser().parse_args([]).compile
 
 
 def _random_policy_expected_return(task) -> float:
