@@ -46,8 +46,11 @@ or its error exceeds `--accuracy-limit`, then bisecting the steps per 1/12 s bet
 and the first bad count (with the same ν as energysim); it is then also timed at 1/2 and 1/4 of that
 step.
 VBD (implicit Euler by vertex block descent, a fixed number of iterations per step) at `--vbd`
-settings. Wall time per simulated second is the median of `--repeats` runs for the peer (Warp's
-kernels are compiled, and cached, before timing) and of one run for energysim (torch threads:
+settings. With `--compile` energysim's runs evaluate the step objective by `torch.compile`d functions
+(`NewtonCG(compile=True)`, which also takes the band Cholesky solve), compiled in an untimed run of
+1/12 s before each timed run. Wall time per simulated second is the median of `--repeats` runs for
+the peer (Warp's kernels are compiled, and cached, before timing) and of `--energysim-repeats` runs
+(default one) for energysim (torch threads:
 `--threads`; Warp's CPU kernels run on one thread). The ratio of an energysim run = its wall time /
 the fastest peer run whose error is at most its own; "ratio VBD" the same against VBD runs alone
 (implicit against implicit).
@@ -58,6 +61,7 @@ Without warp/newton installed the energysim side still runs, and the table says 
 Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, about 5 min on 2 cores
       python scripts/bench_peers.py --sizes tiny --checkpoints 3 --reference-steps 40 --dts 2 4 --vbd
       python scripts/bench_peers.py --poissons-ratio 0.49 --out out/bench_peers_nu049  # near-incompressible
+      python scripts/bench_peers.py --compile --out docs/benchmarks/bench_peers_compiled
 Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
 wall time per simulated second) and bench_peers_search.csv (the stable-step search).
 """
@@ -71,7 +75,7 @@ import statistics
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -232,19 +236,27 @@ def reference_trajectory(
     return fine, float((fine - coarse).norm(dim=-1).max()) / 3.0, runs
 
 
-def energysim_row(tets: int, tol: float, run: Trajectory, reference: Tensor, note: str = "") -> Run:
-    """`run`'s line of the table."""
+def energysim_row(
+    tets: int,
+    tol: float,
+    run: Trajectory,
+    reference: Tensor,
+    note: str = "",
+    compiled: bool = False,
+    repeats: int = 1,
+) -> Run:
+    """`run`'s line of the table (its wall time the median of `repeats` runs)."""
     error, final = errors(run.positions, reference)
     return Run(
         tets=tets,
         simulator=ENERGYSIM,
         integrator=run.integrator,
-        method=f"newton-cg tol {tol:g}",
+        method=f"newton-cg{' compiled' if compiled else ''} tol {tol:g}",
         tol=tol,
         dt=CHECKPOINT_S / run.steps_per_checkpoint,
         steps_per_checkpoint=run.steps_per_checkpoint,
         wall_s_per_sim_s=run.wall_s / (run.steps / run.steps_per_checkpoint * CHECKPOINT_S),
-        repeats=1,
+        repeats=repeats,
         error_m=error,
         final_error_m=final,
         converged=f"{run.converged}/{run.steps}",
@@ -478,9 +490,17 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
     for integrator in args.integrators:
         for tol in args.tols:
             for steps in args.dts:
-                solver = es.NewtonCG(tol=tol, direct_max_dofs=args.direct_max_dofs)
-                run = energysim_trajectory(scene, steps, args.checkpoints, solver, integrator)
-                runs.append(energysim_row(tets, tol, run, reference))
+                solver = es.NewtonCG(tol=tol, direct_max_dofs=args.direct_max_dofs, compile=args.compile)
+                if args.compile:
+                    # compiled before timing, as the peer's kernels are: one untimed 1/12 s
+                    energysim_trajectory(scene, steps, 1, solver, integrator)
+                timed = [
+                    energysim_trajectory(scene, steps, args.checkpoints, solver, integrator)
+                    for _ in range(args.energysim_repeats)
+                ]
+                run = replace(timed[0], wall_s=statistics.median(r.wall_s for r in timed))
+                row = energysim_row(tets, tol, run, reference, compiled=args.compile, repeats=len(timed))
+                runs.append(row)
                 print(runs[-1], flush=True)
     # the reference's own runs are energysim runs too, at small h (their error: their differences)
     for run in reference_runs:
@@ -594,11 +614,20 @@ def markdown(
         f"{integrators}) against Warp through `newton` ({peer}; float32, CPU). error = largest vertex "
         f"distance from the reference at t = 1/12, 2/12, … s. {reference_text(args)} Newton–CG solves "
         f"its linear systems directly up to {args.direct_max_dofs} DOFs (`direct_max_dofs`; "
-        '`direct="auto"` picks dense Cholesky or the block-tridiagonal level solve), by CG above. '
-        "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step). "
-        f"Wall time per simulated second: median of {args.repeats} runs for the peer, one run for "
-        "energysim. ratio = energysim's wall time / the fastest stable peer run whose error is at most "
-        "energysim's (> 1: energysim is slower); ratio VBD: the same against the peer's implicit "
+        '`direct="auto"` picks dense Cholesky, the band Cholesky or the block-tridiagonal level solve), '
+        "by CG above. "
+        + (
+            "energysim's runs (not the reference's) evaluate the objective by compiled functions "
+            "(`compile=True`, which takes the band solve), compiled in an untimed 1/12 s before each "
+            "timed run. "
+            if args.compile
+            else ""
+        )
+        + "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step). "
+        f"Wall time per simulated second: median of {args.repeats} runs for the peer, "
+        + (f"of {args.energysim_repeats} runs" if args.energysim_repeats > 1 else "one run")
+        + " for energysim. ratio = energysim's wall time / the fastest stable peer run whose error is "
+        "at most energysim's (> 1: energysim is slower); ratio VBD: the same against the peer's implicit "
         f"integrator alone. torch threads {args.threads}, OMP_WAIT_POLICY "
         f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}; Warp runs its CPU kernels on one thread. A shared "
         f"2-core machine: load average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end; treat "
@@ -818,11 +847,26 @@ def main(argv: list[str] | None = None) -> list[Run]:
         default=["5:10", "5:40", "20:10", "80:10"],
         help="VBD settings, steps per 1/12 s : iterations per step",
     )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="energysim's runs (not the reference's) evaluate the objective by compiled functions, "
+        "compiled in an untimed run of 1/12 s before each timed one",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each peer setting")
+    parser.add_argument(
+        "--energysim-repeats",
+        type=int,
+        default=1,
+        help="timed runs of each energysim setting (the reference's runs: one)",
+    )
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     parser.add_argument("--out", type=Path, default=Path("out/bench_peers"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
+    for name in ("repeats", "energysim_repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
     if args.reference_steps is None:
         args.reference_steps = DEFAULT_REFERENCE_STEPS[args.reference_integrator]
     torch.set_num_threads(args.threads)
