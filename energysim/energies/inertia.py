@@ -27,9 +27,8 @@ class Inertia(EnergyTerm):
         self, vertex_mass: Tensor, dt: float, predicted_positions: Tensor, anchor: Tensor | None = None
     ) -> None:
         super().__init__()
-        self.vertex_mass = vertex_mass
-        self.dt = dt
-        # M/h² as a tensor, which compiled evaluations read as data. They would bake a float h into
+        # only M/h² is kept (not M and h, whose later change would then change nothing), as a
+        # tensor, which compiled evaluations read as data. They would bake a float h into
         # the graph and compile anew for each h (two per TR-BDF2 step size); past torch.compile's
         # limit of 8 graphs per function the evaluations fell back to eager, and a TR-BDF2 run at
         # h = 1/48 s after runs at other steps took 0.89 instead of 0.45 s per simulated second.
