@@ -2,12 +2,13 @@
 
 A small body's Newton iteration is hundreds of tiny tensor operations, and in eager PyTorch on a
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
-2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Five
+2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Six
 functions are compiled, each over the objective's whole list of terms: the energy, the energy with
-its gradient, a line search's first trial (the CCD step limit, then the energy, gradient, slopes
-and residual where it lands), the warm start's candidates cut back to admissible steps with their
-energies, and the Hessian of a small system, its element blocks scattered straight into a dense
-`[B, N, N]` matrix or into LAPACK's band storage (`energysim.banded`), no CSR in between.
+its gradient, every term's energy apart (TR-BDF2's energy check), a line search's first trial
+(the CCD step limit, then the energy, gradient, slopes and residual where it lands), the warm
+start's candidates cut back to admissible steps with their energies, and the Hessian of a small
+system, its element blocks scattered straight into a dense `[B, N, N]` matrix or into LAPACK's
+band storage (`energysim.banded`), no CSR in between.
 They compute what the eager paths compute, up to the order of floating-point operations (the
 tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
 
@@ -67,6 +68,10 @@ def _energy(terms: tuple[EnergyTerm, ...], anchor: Tensor | None, action: Tensor
     for term in terms:
         total = total + term(_at(term, x, anchor), action)
     return total
+
+
+def _term_energies(terms: tuple[EnergyTerm, ...], action: Tensor | None, x: Tensor) -> Tensor:
+    return torch.stack([term(x, action) for term in terms])
 
 
 def _energy_and_gradient(
@@ -159,6 +164,7 @@ def _hessian_entries(
 _SOURCES: dict[str, Callable] = {
     "energy": _energy,
     "energy_and_gradient": _energy_and_gradient,
+    "term_energies": _term_energies,
     "hessian_entries": _hessian_entries,
     "trial": _trial,
     "cut_back": _cut_back,
@@ -211,6 +217,12 @@ def energy(
 ) -> Tensor | None:
     """E(x) `[B]` by the compiled function, or None (evaluate eagerly)."""
     return call("energy", tuple(terms), anchor, action, x)
+
+
+def term_energies(terms: Sequence[EnergyTerm], action: Tensor | None, x: Tensor) -> Tensor | None:
+    """Every term's E_i(x) at `x` itself (no anchor), `[len(terms), B]`, by the compiled function, or
+    None (evaluate eagerly)."""
+    return call("term_energies", tuple(terms), action, x)
 
 
 def energy_and_gradient(

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from energysim import compiled as compiled_functions
 from energysim.energies.base import EnergyTerm
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
@@ -170,11 +171,14 @@ def _stage(
     return x_next, solver.finish_unrolled(x_next, residual, iterations)
 
 
-def _acceleration(scene: Scene, x: Tensor, action: Tensor | None, differentiable: bool) -> Tensor:
+def _acceleration(
+    scene: Scene, x: Tensor, action: Tensor | None, differentiable: bool, solver: Solver
+) -> Tensor:
     """a = −M⁻¹∇E(x) over the scene's terms, zero on pinned vertices, shape `[B, n, d]`, in m/s².
 
     With `differentiable` the gradient keeps its graph, so the step's backward reaches x, the
-    action and the parameters through it too."""
+    action and the parameters through it too; otherwise it is evaluated as `solver` evaluates its
+    objectives (compiled where it compiles)."""
     terms = list(scene.terms)
     if differentiable:
         with torch.enable_grad():
@@ -182,7 +186,7 @@ def _acceleration(scene: Scene, x: Tensor, action: Tensor | None, differentiable
             energy = sum(term(at, action) for term in terms)
             (gradient,) = torch.autograd.grad(energy.sum(), at, create_graph=True)
     else:
-        objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass, action)
+        objective = solver.prepare(Objective(terms, scene.free, scene.dt / scene.vertex_mass, action))
         _, gradient = objective.energy_and_gradient(x)
     scale = scene.free.to(x.dtype) / scene.vertex_mass
     return -gradient * scale[:, None]
@@ -221,17 +225,23 @@ ENERGY_ROUNDING = 1e-9
 ENERGY_GAIN_LIMIT = 1e-2
 
 
-def _energies(scene: Scene, x: Tensor, v: Tensor, action: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def _energies(
+    scene: Scene, x: Tensor, v: Tensor, action: Tensor | None, compiled: bool
+) -> tuple[Tensor, Tensor, Tensor]:
     """At the step's action, `[B]` each in J: the total (kinetic plus the scene's potential terms),
     the energy of motion and deformation (kinetic plus the nonlinear terms' magnitudes: gravity's
     value depends on where the origin is), and the sum of every part's magnitude (the scale of the
-    total's rounding)."""
+    total's rounding). With `compiled`, the terms' values come from one compiled call."""
+    terms = list(scene.terms)
     with torch.no_grad():
         kinetic = 0.5 * (scene.vertex_mass[:, None] * v.detach() ** 2).sum(dim=(-1, -2))
-        parts = [(term(x.detach(), action), term.is_linear) for term in scene.terms]
-        total = kinetic + sum(part for part, _ in parts)
-        motion = kinetic + sum(part.abs() for part, linear in parts if not linear)
-        return total, motion, kinetic + sum(part.abs() for part, _ in parts)
+        values = compiled_functions.term_energies(terms, action, x.detach()) if compiled else None
+        if values is None:
+            values = torch.stack([term(x.detach(), action) for term in terms])
+        linear = torch.tensor([term.is_linear for term in terms], device=x.device)
+        total = kinetic + values.sum(dim=0)
+        motion = kinetic + torch.where(linear[:, None], 0.0, values.abs()).sum(dim=0)
+        return total, motion, kinetic + values.abs().sum(dim=0)
 
 
 def _gains_energy(
@@ -240,6 +250,7 @@ def _gains_energy(
     after: tuple[Tensor, Tensor],
     action: Tensor | None,
     residual: float,
+    compiled: bool = False,
 ) -> Tensor:
     """Which entries end the step with clearly more energy than they started with, `[B]` bool.
 
@@ -251,8 +262,8 @@ def _gains_energy(
     trapezoidal stage overshooting on a stiff, strongly nonlinear state (a scrambled or flattened
     body)."""
     (x0, v0), (x1, v1) = before, after
-    energy_before, motion_before, scale_before = _energies(scene, x0, v0, action)
-    energy_after, motion_after, scale_after = _energies(scene, x1, v1, action)
+    energy_before, motion_before, scale_before = _energies(scene, x0, v0, action, compiled)
+    energy_after, motion_after, scale_after = _energies(scene, x1, v1, action, compiled)
     work = residual * (scene.vertex_mass[:, None] * v1.detach().abs()).sum(dim=(-1, -2))
     allowance = (
         work
@@ -269,8 +280,11 @@ def _second_order_where_safe(
     action: Tensor | None,
     implicit_euler: Callable[[Tensor, Tensor, Tensor | None], tuple[Tensor, Tensor, SolverResult]],
     tr_bdf2: Callable[[Tensor, Tensor, Tensor | None], tuple[Tensor, Tensor, Tensor, SolverResult]],
+    *,
+    compiled: bool = False,
 ) -> tuple[Tensor, Tensor, SolverResult]:
-    """TR-BDF2 for the batch entries where it is safe, implicit Euler for the others.
+    """TR-BDF2 for the batch entries where it is safe, implicit Euler for the others (`compiled`:
+    the energy check evaluates the terms through a compiled function).
 
     Implicit Euler takes over an entry that
     - touches an obstacle at the step's start or after either stage: a second-order step rebuilds
@@ -302,7 +316,7 @@ def _second_order_where_safe(
         else:
             if report.converged:
                 unsafe = _touching(scene, x_half, act) | _touching(scene, x_next, act)
-                unsafe |= _gains_energy(scene, (x0, v0), (x_next, v_next), act, report.residual)
+                unsafe |= _gains_energy(scene, (x0, v0), (x_next, v_next), act, report.residual, compiled)
             else:
                 unsafe = torch.ones_like(rows, dtype=torch.bool)
             euler[rows[unsafe]] = True
@@ -398,7 +412,7 @@ def step(
         return x1, (x1 - x0) / h, stats
 
     def tr_bdf2(x0: Tensor, v0: Tensor, act: Tensor | None) -> tuple[Tensor, Tensor, Tensor, SolverResult]:
-        acceleration = _acceleration(scene, x0, act, wants_grad)
+        acceleration = _acceleration(scene, x0, act, wants_grad, solver)
         # stage targets written as implicit-Euler predictions x_start + dt·v_start
         x_half, first = stage(x0, 2.0 * v0 + (h / 4.0) * acceleration, h / 4.0, act)
         v_half = 4.0 * (x_half - x0) / h - v0
@@ -411,7 +425,7 @@ def step(
         x_next, v_next, stats = implicit_euler(x_prev, v_prev, action)
     else:
         x_next, v_next, stats = _second_order_where_safe(
-            scene, x_prev, v_prev, action, implicit_euler, tr_bdf2
+            scene, x_prev, v_prev, action, implicit_euler, tr_bdf2, compiled=solver.compile
         )
     new_state = torch.cat([x_next.reshape(x_next.shape[0], -1), v_next.reshape(v_next.shape[0], -1)], dim=-1)
     return StepResult(state=new_state.reshape(state.shape), stats=stats)
