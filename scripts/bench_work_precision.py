@@ -182,10 +182,11 @@ class BudgetedSolver:
 
     def __init__(self, solver: es.Solver, budget_s: float, steps: int) -> None:
         self.solver = solver
-        self.tol, self.max_iter, self.strict, self.name = (
+        self.tol, self.max_iter, self.strict, self.compile, self.name = (
             solver.tol,
             solver.max_iter,
             solver.strict,
+            solver.compile,
             solver.name,
         )
         self.budget_s, self.steps = budget_s, steps
