@@ -120,3 +120,30 @@ def test_a_stiff_rotated_box_lands_with_every_step_converged(solver: es.Solver, 
         x, _ = scene.split_state(result.state)
         assert float(x[0, :, 1].min()) > 0.0  # above the ground
         state, energy = result.state, new_energy
+
+
+class _Bowl(es.EnergyTerm):
+    """E = ½ k ‖x‖², in J: a quadratic, on which one interpolation lands on the minimum exactly."""
+
+    def forward(self, x: torch.Tensor, action: torch.Tensor | None = None) -> torch.Tensor:
+        return 0.5 * 4.0 * (x * x).sum(dim=(-1, -2))
+
+
+def test_backtracking_interpolates_a_far_too_long_step_down_to_the_minimum() -> None:
+    # from x = 1 along d = −100: the minimum is at t = 0.01. Halving would stop at t = 1/64
+    # (x = −0.56) after 6 refusals; the quadratic through E(0), E'(0), E(t) has its minimiser at
+    # t = 0.01 exactly, reached in two safeguarded reductions (t/10 each)
+    from energysim.objective import Objective
+    from energysim.optim.base import backtracking_line_search
+
+    x = torch.ones(1, 1, 1, dtype=torch.float64)
+    objective = Objective([_Bowl()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
+    energy, gradient = objective.energy_and_gradient(x)
+    direction = -100.0 * torch.ones_like(x)
+    no_noise = torch.zeros(1, dtype=torch.float64)  # nothing here is near rounding
+    step, new_energy, _ = backtracking_line_search(
+        objective, x, energy, gradient, direction, torch.ones(1, dtype=torch.float64), rounding=no_noise
+    )
+    assert float(step) == pytest.approx(0.01, rel=1e-12)
+    assert float(new_energy) == pytest.approx(0.0, abs=1e-20)
+    assert objective.energy_evals == 3  # t = 1, 0.1, 0.01
