@@ -157,7 +157,8 @@ def _stage(
             "dt": dt,
             "strict": solver.strict,
             "adjoint_rtol": adjoint_rtol,
-            "direct_max_dofs": getattr(solver, "direct_max_dofs", 600),
+            # the adjoint assembles eagerly: the eager limit
+            "direct_max_dofs": solver.direct_limit() if hasattr(solver, "direct_limit") else 600,
         }
         x_next = ImplicitStep.apply(context, x_start, v_start, action, *parameters)
         return x_next, context["result"]

@@ -257,3 +257,31 @@ def test_a_function_that_fails_to_compile_warns_and_falls_back_to_eager(monkeypa
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once only
         assert torch.equal(objective.energy(x), eager)
+
+
+def test_a_compiled_band_hessian_takes_the_direct_solve_past_the_eager_limit():
+    # 891 DOFs: over the 600 an eagerly assembled direct solve takes, so eagerly CG solves; compiled,
+    # the Hessian goes straight into band storage and the band Cholesky solves (no Hessian-vector
+    # products). Both stop at the same residual, so the steps agree to that tolerance.
+    mesh = es.TetMesh.box(size=(1.2, 0.2, 0.2), cells=(32, 2, 2))
+    assert 600 < mesh.num_vertices * 3 <= 5000
+    scene = es.Scene(mesh, dt=1 / 60)
+    scene.add(es.NeoHookean(1e5, 0.3))
+    scene.fix(torch.nonzero(mesh.vertices[:, 0] < 1e-9))
+    results = {}
+    for compile_flag in (False, True):
+        solver = es.NewtonCG(tol=1e-9, compile=compile_flag)
+        assert solver.direct_limit(compiled_band=True) == 5000 and solver.direct_limit() == 600
+        state = scene.initial_state()
+        hvps = 0
+        for _ in range(3):
+            result = es.step(scene, state, solver=solver)
+            state, hvps = result.state, hvps + result.stats.hvp_evals
+            assert result.stats.converged
+        results[compile_flag] = (state, hvps)
+    assert results[False][1] > 0 and results[True][1] == 0
+    assert torch.allclose(results[True][0], results[False][0], rtol=0, atol=1e-9)
+    # an explicit limit holds for every path
+    assert es.NewtonCG(direct_max_dofs=0, compile=True).direct_limit(compiled_band=True) == 0
+    with pytest.raises(ValueError, match="direct_max_dofs"):
+        es.NewtonCG(direct_max_dofs=-1)
