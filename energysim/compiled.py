@@ -14,9 +14,10 @@ tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the s
 
 Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
 over a 5 s walk): the worm 42.5 → 11.8, the 2D crawler 22.1 → 8.5 and the 2D walker 25.6 → 10.2
-(all three faster than real time); the quadruped (888 tets, over the direct solve's size, so CG)
-gains little, 131 → 114. The first call per scene pays the compilation (about 15 s for the worm,
-a few seconds when torch's on-disk cache already holds it); a new scene, step size or batch size
+(all three faster than real time). Bodies over 600 DOFs take the band direct solve only compiled
+(`NewtonCG.direct_limit`): the quadruped (888 tets) 150.6 → 46.0 against the eager CG path. The
+first call per scene pays the compilation (about 15 s for the worm, a few seconds when torch's
+on-disk cache already holds it); a new scene, step size or batch size
 compiles again, and a batch that drops its converged entries meets several sizes (six worms: about
 a minute the first time). It pays off for long runs of one scene: walking, training. Where compiling
 fails (no C++ compiler, an unsupported operation), a warning says so once and the eager paths take
