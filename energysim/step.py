@@ -81,7 +81,8 @@ def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: flo
         return candidates[0]
     # the prediction as inertia alone makes it stays a candidate: held contact vertices suit a gait,
     # but a body at rest starts better from x_n + h v_n (the worm at zero action: 1.4 Newton
-    # iterations per step from there, 2.3 when only the held candidates and x_n compete)
+    # iterations per step from there, 2.3 when only the held candidates and x_n compete). Lowest
+    # energy is not always the best start: the quadruped's walk took 10.3 iterations, not 8.9
     candidates.append(predicted)
     cuts, energies = objective.cut_back(x_prev, candidates)
     best, best_energy = x_prev, energies[0]
