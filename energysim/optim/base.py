@@ -334,7 +334,10 @@ def backtracking_line_search(
     finite): where a direction is far too long, as an indefinite Hessian's shifted one can be, one
     interpolation lands near the acceptable step that several halvings would reach. The first
     trial's energy comes from the caller where it has it (`initial_energy`). On 16 worms with random
-    actions a search took 1.6 energy evaluations instead of 4.0.
+    actions a search took 1.6 energy evaluations instead of 4.0, and an env step 7% less time than
+    halving with that reuse. The cost: against a barrier the quadratic model under-estimates the
+    step that passes, and the worm's walk took 7.21 Newton iterations per step instead of 6.87
+    (about 5% more time).
 
     Near convergence the energy change falls below the energy's rounding error, so a rise within
     that error counts as no increase; and where even the full step's predicted decrease is below
