@@ -20,6 +20,7 @@ from energysim.implicit import ImplicitStep, differentiable_parameters, step_ter
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
 from energysim.optim.base import ConvergenceError, ConvergenceWarning
+from energysim.optim.newton_cg import EAGER_DIRECT_MAX_DOFS
 from energysim.scene import Scene
 
 
@@ -150,6 +151,7 @@ def _stage(
         stats = solve()
         return stats.x, stats
     if grad_mode == "implicit":
+        direct_limit = getattr(solver, "direct_limit", None)
         context = {
             "run": solve,
             "terms": list(scene.terms),
@@ -159,7 +161,7 @@ def _stage(
             "strict": solver.strict,
             "adjoint_rtol": adjoint_rtol,
             # the adjoint assembles eagerly: the eager limit
-            "direct_max_dofs": solver.direct_limit() if hasattr(solver, "direct_limit") else 600,
+            "direct_max_dofs": direct_limit() if direct_limit else EAGER_DIRECT_MAX_DOFS,
         }
         x_next = ImplicitStep.apply(context, x_start, v_start, action, *parameters)
         return x_next, context["result"]
@@ -244,9 +246,10 @@ def _energies(
         values = compiled_functions.term_energies(terms, action, x.detach()) if compiled else None
         if values is None:
             values = torch.stack([term(x.detach(), action) for term in terms])
-        linear = torch.tensor([term.is_linear for term in terms], device=x.device)
         total = kinetic + values.sum(dim=0)
-        motion = kinetic + torch.where(linear[:, None], 0.0, values.abs()).sum(dim=0)
+        motion = kinetic + sum(
+            value.abs() for value, term in zip(values, terms, strict=True) if not term.is_linear
+        )
         return total, motion, kinetic + values.abs().sum(dim=0)
 
 
