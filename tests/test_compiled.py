@@ -285,3 +285,20 @@ def test_a_compiled_band_hessian_takes_the_direct_solve_past_the_eager_limit():
     assert es.NewtonCG(direct_max_dofs=0, compile=True).direct_limit(compiled_band=True) == 0
     with pytest.raises(ValueError, match="direct_max_dofs"):
         es.NewtonCG(direct_max_dofs=-1)
+
+
+def test_small_matmul_traced_by_the_compiler_equals_the_matrix_product():
+    # the broadcast form the compiler fuses, against `@`, with a batch broadcast as the Hessian uses it
+    from energysim.small_matmul import small_matmul
+
+    generator = torch.Generator().manual_seed(0)
+    strain_map_t = torch.randn(5, 12, 9, generator=generator, dtype=torch.float64)
+    stiffness = torch.randn(2, 5, 9, 9, generator=generator, dtype=torch.float64)
+    strain_map = strain_map_t.transpose(-1, -2)
+    expected = strain_map_t @ (stiffness @ strain_map)
+    eager = small_matmul(strain_map_t, small_matmul(stiffness, strain_map))
+    traced = torch.compile(lambda a, s, b: small_matmul(a, small_matmul(s, b)), fullgraph=True)
+    result = traced(strain_map_t, stiffness, strain_map)
+    assert torch.equal(eager, expected)
+    assert result.shape == expected.shape == (2, 5, 12, 12)
+    assert torch.allclose(result, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
