@@ -15,15 +15,23 @@ that stays on the direct path.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from energysim.assembly import cached_pattern
-from energysim.banded import band_cholesky_solve, prefer_band, solve_bands
+from energysim.banded import (
+    BandFactor,
+    band_cholesky_solve,
+    factorise_bands,
+    prefer_band,
+    solve_bands,
+    substitute_bands,
+)
 from energysim.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
 from energysim.derivatives import HessianOperator
+from energysim.energies.inertia import Inertia
 from energysim.objective import Objective
 from energysim.optim.base import Solver, SolverResult, line_step
 
@@ -39,6 +47,9 @@ COMPILED_BAND_MAX_DOFS = 5000
 # its Newton step; past the last, truncated CG takes over. On the worm environment with random
 # actions 46% of the Newton iterations met an indefinite H, and most took τ = 1 or 10.
 INDEFINITE_SHIFTS = (1e-2, 1e-1, 1.0, 10.0)
+# Kept factorisations (`NewtonCG.reuse_factorization`): one per kind of solve a scene alternates
+# between (TR-BDF2's two stages have different M/h², implicit Euler a third).
+KEPT_FACTORISATIONS = 4
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -179,6 +190,17 @@ class NewtonCG(Solver):
             a fixed shift converges only linearly where H stays indefinite up to the solution
             (a muscle alone, extended, has minimisers in a whole family of shapes), where
             Steihaug's CG converged in 22 iterations and the shift had not in 100.
+        reuse_factorization: None (default): factorise H at every Newton iteration. A fraction ρ in
+            (0, 1): on the compiled band path (`compile=True`, CPU), keep each band Cholesky factor
+            and solve with it in later iterations and later steps (a chord method) as long as every
+            iteration it serves shrinks the entry's velocity residual to at most ρ times its previous
+            value and its step is taken whole; where one does not, H is factorised anew at the
+            current iterate. The solve still stops on `tol` alone, so the result is as accurate;
+            the directions are those of an older H, which costs iterations where H changes fast
+            (contact, switching muscles) and saves the Hessian assembly and factorisation where it
+            changes slowly (a swinging beam). The factors are kept by this solver object, per batch
+            size and M/h² (`KEPT_FACTORISATIONS` of them), and entries are matched by their row in
+            the batch: results depend on what the solver solved before, within `tol`.
     """
 
     max_iter: int = 100
@@ -191,6 +213,11 @@ class NewtonCG(Solver):
     project_hessian: bool = False
     compact_below: float = 0.5
     indefinite: str = "cg"
+    reuse_factorization: float | None = None
+    # the kept factorisations: per (layout, batch size, M/h²), one factor per batch entry
+    _factors: dict[tuple, tuple[LevelLayout, list[BandFactor | None]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -210,6 +237,10 @@ class NewtonCG(Solver):
             raise ValueError(f"forcing must lie in (0, 1), got {self.forcing}")
         if not (0 <= self.compact_below < 1):
             raise ValueError(f"compact_below must lie in [0, 1), got {self.compact_below}")
+        if self.reuse_factorization is not None and not (0 < self.reuse_factorization < 1):
+            raise ValueError(
+                f"reuse_factorization must be None or lie in (0, 1), got {self.reuse_factorization}"
+            )
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
         root = self.prepare(objective)
@@ -221,6 +252,8 @@ class NewtonCG(Solver):
         iterations = 0
         steepest = torch.zeros_like(residual, dtype=torch.bool)  # entries whose last Newton step failed
         stalled = torch.zeros_like(steepest)
+        # entries whose kept factorisation served poorly (`reuse_factorization`): factorise anew
+        refresh = torch.zeros_like(steepest)
         # the whole batch's results; `entries` are the batch indices of the rows still computed on
         solved_x, solved_residual = x, residual
         entries = torch.arange(x.shape[0], device=x.device)
@@ -238,12 +271,15 @@ class NewtonCG(Solver):
                 used.append(objective)
                 x, energy, gradient, residual = x[rows], energy[rows], gradient[rows], residual[rows]
                 first_residual, steepest, stalled = first_residual[rows], steepest[rows], stalled[rows]
+                refresh = refresh[rows]
                 active = active[rows]
             iterations += 1
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
             wanted = active & ~steepest
-            direction, precondition, products = self._newton_direction(objective, x, gradient, eta, wanted)
+            direction, precondition, products = self._newton_direction(
+                objective, x, gradient, eta, wanted, refresh
+            )
             hvps += products
             if steepest.any():
                 direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
@@ -257,6 +293,9 @@ class NewtonCG(Solver):
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
             search = line_step(objective, x, energy, gradient, direction)
+            if self.reuse_factorization is not None:
+                slow = search.residual > self.reuse_factorization * residual
+                refresh = active & (slow | (search.step < 1))
             failed = active & (search.step == 0)
             stalled = stalled | (failed & steepest)
             steepest = failed
@@ -292,10 +331,17 @@ class NewtonCG(Solver):
         return int(active.sum()) <= self.compact_below * active.numel()
 
     def _newton_direction(
-        self, objective: Objective, x: Tensor, gradient: Tensor, eta: Tensor, wanted: Tensor
+        self,
+        objective: Objective,
+        x: Tensor,
+        gradient: Tensor,
+        eta: Tensor,
+        wanted: Tensor,
+        refresh: Tensor | None = None,
     ) -> tuple[Tensor, Callable[[Tensor], Tensor], int]:
         """Solve H p = −∇E for the `wanted` entries; returns p, the preconditioner, and the
-        Hessian-vector products taken."""
+        Hessian-vector products taken. `refresh`: entries whose kept factorisation must be
+        renewed (`reuse_factorization`)."""
         operators: list[HessianOperator] = []
 
         def operator() -> HessianOperator:
@@ -316,7 +362,7 @@ class NewtonCG(Solver):
                 built.append(self._preconditioner(operator(), x, objective))
             return built[0](r)
 
-        compiled = self._compiled_direct(objective, -gradient, x, wanted)
+        compiled = self._compiled_direct(objective, -gradient, x, wanted, refresh)
         direction, solved = compiled or self._direct(operator(), -gradient, x, wanted)
         if (wanted & ~solved).any():
             unsolved = wanted & ~solved
@@ -325,11 +371,12 @@ class NewtonCG(Solver):
         return direction, precondition, operator().products if operators else 0
 
     def _compiled_direct(
-        self, objective: Objective, rhs: Tensor, x: Tensor, wanted: Tensor
+        self, objective: Objective, rhs: Tensor, x: Tensor, wanted: Tensor, refresh: Tensor | None = None
     ) -> tuple[Tensor, Tensor] | None:
         """`_direct`'s dense solve from the compiled dense Hessian (`Objective.dense_hessian`): the
         directions and which entries they solved, or None where `_direct` would not take the dense
-        path or the objective has no compiled Hessian."""
+        path or the objective has no compiled Hessian. On the band path with
+        `reuse_factorization`, from the kept factors where they serve (`_kept_directions`)."""
         size = x.shape[1] * x.shape[2]
         if (
             not objective.compiled
@@ -346,6 +393,10 @@ class NewtonCG(Solver):
         if band is None and size > self.direct_limit():
             return None  # a dense matrix of this size: CG
         if band is not None:
+            if self.reuse_factorization is not None:
+                kept = self._kept_directions(objective, x, band, rhs, wanted, refresh)
+                if kept is not None:
+                    return kept
             bands = objective.band_hessian(x, band)
             if bands is None:
                 return None
@@ -366,6 +417,45 @@ class NewtonCG(Solver):
         if dense is None:
             return None
         return self._dense_directions(dense, rhs, wanted, None)
+
+    def _kept_directions(
+        self,
+        objective: Objective,
+        x: Tensor,
+        band: LevelLayout,
+        rhs: Tensor,
+        wanted: Tensor,
+        refresh: Tensor | None,
+    ) -> tuple[Tensor, Tensor] | None:
+        """Directions from the kept band factors (`reuse_factorization`), factorising H anew (the
+        compiled band Hessian) for the wanted entries without one or flagged in `refresh`; None
+        where H is not positive definite at such an entry, and the caller's usual path (with its
+        shifted retries or CG) takes the iteration."""
+        batch = x.shape[0]
+        # a new M/h² (another step size or stage) needs its own factors; the sum identifies it
+        inertia = tuple(
+            float(term.mass_per_dt_squared.sum()) for term in objective.terms if isinstance(term, Inertia)
+        )
+        key = (id(band), batch, x.dtype, inertia)
+        record = self._factors.pop(key, None)
+        factors = list(record[1]) if record is not None and record[0] is band else [None] * batch
+        renew = [row for row in range(batch) if factors[row] is None]
+        if refresh is not None:
+            renew = sorted(set(renew) | set(torch.nonzero(refresh).reshape(-1).tolist()))
+        renew = [row for row in renew if bool(wanted[row])]
+        if renew:
+            bands = objective.band_hessian(x, band)
+            if bands is None:
+                return None
+            fresh = factorise_bands(bands[renew])
+            if any(factor is None for factor in fresh):
+                return None
+            for row, factor in zip(renew, fresh, strict=True):
+                factors[row] = factor
+        self._factors[key] = (band, factors)
+        while len(self._factors) > KEPT_FACTORISATIONS:
+            del self._factors[next(iter(self._factors))]
+        return _band_directions(substitute_bands(factors, rhs.reshape(batch, -1), band), rhs, wanted)
 
     def _shifted(
         self,
@@ -419,7 +509,7 @@ class NewtonCG(Solver):
         return self._dense_directions(dense, rhs, wanted, self._band(method, groups, x))
 
     def _method_for(self, element_groups: list[Tensor], x: Tensor, *, compiled: bool = False) -> str:
-        """"dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
+        """ "dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
         `element_groups`: `direct` unless "auto", else the cheapest by the cost estimates. With
         `compiled` the Hessian can be assembled by a compiled function straight into band storage
         (not into level blocks), which makes the band path the cheaper one wherever it runs."""
