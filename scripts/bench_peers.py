@@ -62,6 +62,7 @@ Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, 
       python scripts/bench_peers.py --sizes tiny --checkpoints 3 --reference-steps 40 --dts 2 4 --vbd
       python scripts/bench_peers.py --poissons-ratio 0.49 --out out/bench_peers_nu049  # near-incompressible
       python scripts/bench_peers.py --compile --out docs/benchmarks/bench_peers_compiled
+      python scripts/bench_peers.py --compile --reuse-factorization 0.5 --out docs/benchmarks/bench_peers_reuse
 Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
 wall time per simulated second) and bench_peers_search.csv (the stable-step search).
 """
@@ -244,6 +245,7 @@ def energysim_row(
     note: str = "",
     compiled: bool = False,
     repeats: int = 1,
+    reuse_factorization: float | None = None,
 ) -> Run:
     """`run`'s line of the table (its wall time the median of `repeats` runs)."""
     error, final = errors(run.positions, reference)
@@ -251,7 +253,9 @@ def energysim_row(
         tets=tets,
         simulator=ENERGYSIM,
         integrator=run.integrator,
-        method=f"newton-cg{' compiled' if compiled else ''} tol {tol:g}",
+        method=f"newton-cg{' compiled' if compiled else ''}"
+        + (f" reuse {reuse_factorization:g}" if reuse_factorization is not None else "")
+        + f" tol {tol:g}",
         tol=tol,
         dt=CHECKPOINT_S / run.steps_per_checkpoint,
         steps_per_checkpoint=run.steps_per_checkpoint,
@@ -490,7 +494,12 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
     for integrator in args.integrators:
         for tol in args.tols:
             for steps in args.dts:
-                solver = es.NewtonCG(tol=tol, direct_max_dofs=args.direct_max_dofs, compile=args.compile)
+                solver = es.NewtonCG(
+                    tol=tol,
+                    direct_max_dofs=args.direct_max_dofs,
+                    compile=args.compile,
+                    reuse_factorization=args.reuse_factorization,
+                )
                 if args.compile:
                     # compiled before timing, as the peer's kernels are: one untimed 1/12 s
                     energysim_trajectory(scene, steps, 1, solver, integrator)
@@ -499,7 +508,15 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
                     for _ in range(args.energysim_repeats)
                 ]
                 run = replace(timed[0], wall_s=statistics.median(r.wall_s for r in timed))
-                row = energysim_row(tets, tol, run, reference, compiled=args.compile, repeats=len(timed))
+                row = energysim_row(
+                    tets,
+                    tol,
+                    run,
+                    reference,
+                    compiled=args.compile,
+                    repeats=len(timed),
+                    reuse_factorization=args.reuse_factorization,
+                )
                 runs.append(row)
                 print(runs[-1], flush=True)
     # the reference's own runs are energysim runs too, at small h (their error: their differences)
@@ -621,6 +638,13 @@ def markdown(
             "(`compile=True`, which takes the band solve), compiled in an untimed 1/12 s before each "
             "timed run. "
             if args.compile
+            else ""
+        )
+        + (
+            f"Newton–CG keeps its band factorisations across iterations and steps while each iteration "
+            f"shrinks the residual to at most {args.reuse_factorization:g} of its previous value "
+            "(`reuse_factorization`, a chord method; it stops on the same tolerance). "
+            if args.reuse_factorization is not None
             else ""
         )
         + "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step). "
@@ -853,6 +877,14 @@ def main(argv: list[str] | None = None) -> list[Run]:
         help="energysim's runs (not the reference's) evaluate the objective by compiled functions, "
         "compiled in an untimed run of 1/12 s before each timed one",
     )
+    parser.add_argument(
+        "--reuse-factorization",
+        type=float,
+        default=None,
+        metavar="RHO",
+        help="energysim's Newton–CG keeps its band factorisations while each iteration shrinks the "
+        "residual to at most RHO of its previous value (`NewtonCG(reuse_factorization=RHO)`; with --compile)",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each peer setting")
     parser.add_argument(
         "--energysim-repeats",
@@ -867,6 +899,8 @@ def main(argv: list[str] | None = None) -> list[Run]:
     for name in ("repeats", "energysim_repeats"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
+    if args.reuse_factorization is not None and not (0 < args.reuse_factorization < 1 and args.compile):
+        parser.error("--reuse-factorization needs --compile and a value in (0, 1)")
     if args.reference_steps is None:
         args.reference_steps = DEFAULT_REFERENCE_STEPS[args.reference_integrator]
     torch.set_num_threads(args.threads)

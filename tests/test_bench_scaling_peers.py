@@ -239,3 +239,13 @@ def test_poissons_ratio_reaches_the_peer_material():
     materials = peer.model.tet_materials.numpy()
     assert materials[:, 0] == pytest.approx(k_mu, rel=1e-6)
     assert materials[:, 1] == pytest.approx(k_lambda, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "flags", [["--reuse-factorization", "0.5"], ["--compile", "--reuse-factorization", "1.5"]]
+)
+def test_bench_peers_refuses_reuse_without_compile_or_outside_zero_one(flags):
+    # kept factorisations exist only on the compiled band path, and ρ is a contraction fraction
+    with pytest.raises(SystemExit) as refused:
+        bench_peers.main(flags)
+    assert refused.value.code == 2
