@@ -302,3 +302,20 @@ def test_small_matmul_traced_by_the_compiler_equals_the_matrix_product():
     assert torch.equal(eager, expected)
     assert result.shape == expected.shape == (2, 5, 12, 12)
     assert torch.allclose(result, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
+
+
+def test_kept_factorisations_hand_an_indefinite_hessian_to_the_shifted_solve():
+    # `reuse_factorization`: a new factor that fails (the worm's H is indefinite here) keeps no
+    # factor for that entry and leaves the iteration to the usual path, whose shifted solve it equals
+    _, objective, x = _worm_objective(batch=2)
+    objective.compiled = True
+    _, gradient = objective.energy_and_gradient(x)
+    wanted = torch.ones(2, dtype=torch.bool)
+    plain = es.NewtonCG(direct="banded", indefinite="shift", compile=True)
+    expected, expected_solved = plain._compiled_direct(objective, -gradient, x, wanted)
+    kept = es.NewtonCG(direct="banded", indefinite="shift", compile=True, reuse_factorization=0.5)
+    direction, solved = kept._compiled_direct(objective, -gradient, x, wanted)
+    assert solved.tolist() == expected_solved.tolist() == [True, True]
+    assert torch.equal(direction, expected)
+    ((_, factors),) = kept._factors.values()
+    assert factors == [None, None]

@@ -447,14 +447,14 @@ class NewtonCG(Solver):
             bands = objective.band_hessian(x, band)
             if bands is None:
                 return None
-            fresh = factorise_bands(bands[renew])
-            if any(factor is None for factor in fresh):
-                return None
-            for row, factor in zip(renew, fresh, strict=True):
+            for row, factor in zip(renew, factorise_bands(bands[renew]), strict=True):
                 factors[row] = factor
+        # kept even where a new factor failed: the other entries' factors still serve
         self._factors[key] = (band, factors)
         while len(self._factors) > KEPT_FACTORISATIONS:
             del self._factors[next(iter(self._factors))]
+        if any(factors[row] is None for row in renew):
+            return None
         return _band_directions(substitute_bands(factors, rhs.reshape(batch, -1), band), rhs, wanted)
 
     def _shifted(
@@ -509,7 +509,7 @@ class NewtonCG(Solver):
         return self._dense_directions(dense, rhs, wanted, self._band(method, groups, x))
 
     def _method_for(self, element_groups: list[Tensor], x: Tensor, *, compiled: bool = False) -> str:
-        """ "dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
+        """"dense", "banded" or "levels" for a Hessian whose blocks couple the vertices of
         `element_groups`: `direct` unless "auto", else the cheapest by the cost estimates. With
         `compiled` the Hessian can be assembled by a compiled function straight into band storage
         (not into level blocks), which makes the band path the cheaper one wherever it runs."""
