@@ -144,11 +144,28 @@ def band_diagonal_positions(layout: LevelLayout) -> Tensor:
 def eliminate_fixed_in_bands(bands: Tensor, layout: LevelLayout, fixed_dofs: Tensor) -> Tensor:
     """`bands` `[B, N, u + 1]` with the rows and columns of `fixed_dofs` (`[N]` bool, DOF order)
     replaced by the identity's, as `energysim.assembly.assemble` eliminates them."""
-    size, width = bands.shape[1], bands.shape[2]
-    fixed = fixed_dofs[layout.band_order]
-    kept = (~fixed).to(bands.dtype)
-    rows = torch.arange(size, device=bands.device)[:, None] + torch.arange(width, device=bands.device)
-    mask = kept[:, None] * kept[rows.clamp(max=size - 1)]
+    mask, identity = _elimination(layout, fixed_dofs, bands.dtype)
     bands = bands * mask
-    bands[..., 0] += fixed.to(bands.dtype)
+    bands[..., 0] += identity
     return bands
+
+
+_ELIMINATIONS: IdentityCache[tuple[Tensor, Tensor]] = IdentityCache(capacity=32)
+
+
+def _elimination(layout: LevelLayout, fixed_dofs: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The 0/1 mask `[N, u + 1]` that clears the band entries in a fixed row or column, and the
+    fixed DOFs' diagonal `[N]`, both in band order. Built once per layout and set of fixed DOFs:
+    building them every call made the elimination take 0.39 ms instead of 0.04 (the compiled
+    810-tet cantilever, where the profile put it at 8 % of a Newton iteration). The set is keyed by
+    its bytes (a scene hands out a new `free` tensor at every access)."""
+
+    def build() -> tuple[Tensor, Tensor]:
+        fixed = fixed_dofs[layout.band_order]
+        size, width = fixed.numel(), layout.half_bandwidth + 1
+        kept = (~fixed).to(dtype)
+        rows = torch.arange(size, device=fixed.device)[:, None] + torch.arange(width, device=fixed.device)
+        return kept[:, None] * kept[rows.clamp(max=size - 1)], fixed.to(dtype)
+
+    key = (fixed_dofs.cpu().numpy().tobytes(), dtype, fixed_dofs.device)
+    return _ELIMINATIONS.get((layout,), key, build)

@@ -132,6 +132,15 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         # a pinned DOF's column holds the identity's: 1 on the diagonal, 0 below it
         dof = int(layout.band_position[5 * 3 + 1])
         assert float(bands[0, dof, 0]) == 1.0 and float(bands[0, dof, 1:].abs().max()) == 0.0
+        # another pinned set on the same layout: the cached elimination follows the set, not the layout
+        free = scene.free.clone()
+        free[[3, 9]] = False
+        objective.free = free
+        bands = objective.band_hessian(x, layout)
+        objective.compiled = False
+        dense = objective.hessian(x).dense(x)
+        expected = _without_corner(dense.reshape(2, -1)[:, layout.band_entries])
+        assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
 def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one():
