@@ -62,7 +62,8 @@ Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, 
       python scripts/bench_peers.py --sizes tiny --checkpoints 3 --reference-steps 40 --dts 2 4 --vbd
       python scripts/bench_peers.py --poissons-ratio 0.49 --out out/bench_peers_nu049  # near-incompressible
       python scripts/bench_peers.py --compile --out docs/benchmarks/bench_peers_compiled
-      python scripts/bench_peers.py --compile --reuse-factorization 0.5 --out docs/benchmarks/bench_peers_reuse
+      python scripts/bench_peers.py --compile --reuse-factorization 0.5 \\
+          --out docs/benchmarks/bench_peers_reuse
 Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
 wall time per simulated second) and bench_peers_search.csv (the stable-step search).
 """
