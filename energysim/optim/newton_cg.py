@@ -439,10 +439,10 @@ class NewtonCG(Solver):
         key = (id(band), batch, x.dtype, inertia)
         record = self._factors.pop(key, None)
         factors = list(record[1]) if record is not None and record[0] is band else [None] * batch
-        renew = [row for row in range(batch) if factors[row] is None]
+        need = torch.tensor([factor is None for factor in factors], device=wanted.device)
         if refresh is not None:
-            renew = sorted(set(renew) | set(torch.nonzero(refresh).reshape(-1).tolist()))
-        renew = [row for row in renew if bool(wanted[row])]
+            need |= refresh
+        renew = torch.nonzero(wanted & need).reshape(-1).tolist()
         if renew:
             bands = objective.band_hessian(x, band)
             if bands is None:
