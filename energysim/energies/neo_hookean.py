@@ -58,6 +58,9 @@ class NeoHookean(ElementEnergy):
         weighted = strain_map.flatten(1, 2) * rest_volume.sqrt()[:, None, None]
         self.register_buffer("weighted_strain_map", weighted.contiguous(), persistent=False)
         self.register_buffer("weighted_strain_map_t", weighted.transpose(1, 2).contiguous(), persistent=False)
+        # element-major copies for the compiled gradient (`value_and_gradient`): elements last
+        self.register_buffer("element_vertices_t", mesh.elements.T.contiguous(), persistent=False)
+        self.register_buffer("shape_gradient_t", grad_n.permute(1, 2, 0).contiguous(), persistent=False)
 
     def lame(self) -> tuple[Tensor, Tensor]:
         """(μ, λ) in Pa, scalars or shape `[m]`."""
@@ -85,6 +88,38 @@ class NeoHookean(ElementEnergy):
         density, stress = stable_neo_hookean_density_and_stress(F, mu, lam)
         stress = stress * self.rest_volume[:, None, None]
         return self.rest_volume * density, self.shape_gradient @ stress.transpose(-1, -2)
+
+    def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
+        if torch.compiler.is_compiling() and x.device.type == "cpu":
+            return self.value_and_gradient(x, action)[0]  # element-major; the compiler drops ∇E
+        return super().forward(x, action)
+
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
+        """E(x) `[B]` and ∇E(x) `[B, n, d]`; see `ElementEnergy.value_and_gradient`.
+
+        While `torch.compile` traces CPU tensors, the same arithmetic is laid out element-major:
+        Inductor vectorises its generated loops over the innermost index, and in the per-element
+        layout `[B, m, k, d]` that index runs over 3 or 4 entries, so most of each vector went
+        unused and the two 3×3 products left the loops for batched BLAS calls. With the elements
+        innermost the whole kernel is one loop over them: the compiled gradient of the 810-tet
+        cantilever took 54 instead of 178 µs (unrolled eight times, one thread).
+        """
+        if not (torch.compiler.is_compiling() and x.device.type == "cpu"):
+            return super().value_and_gradient(x, action)
+        batch, num_vertices, dim = x.shape
+        mu, lam = self.lame()
+        # [B, d, k, m]: corner b's coordinate i of element e at [:, i, b, e]
+        corners = x.transpose(1, 2)[:, :, self.element_vertices_t]
+        # F_ij = Σ_b x_bi ∇N_bj, as [B, d, d, m]
+        F = (corners[:, :, :, None, :] * self.shape_gradient_t[None, None]).sum(dim=2)
+        density, stress = stable_neo_hookean_density_and_stress(F.permute(0, 3, 1, 2), mu, lam)
+        stress = (stress * self.rest_volume[:, None, None]).permute(0, 2, 3, 1)
+        # ∂E/∂x_bi = V Σ_j P_ij ∇N_bj, as [B, d, k, m]
+        forces = (stress[:, :, None] * self.shape_gradient_t[None, None]).sum(dim=3)
+        dofs = self.element_vertices_t[None] * dim + torch.arange(dim, device=x.device)[:, None, None]
+        flat = x.new_zeros(batch, num_vertices * dim)
+        flat = flat.index_add(1, dofs.reshape(-1), forces.reshape(batch, -1))
+        return (self.rest_volume * density).sum(dim=-1), flat.reshape(x.shape)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.
