@@ -16,12 +16,13 @@ from energysim.energies import (
     NeoHookean,
     Springs,
 )
+from energysim.explicit import InstabilityError
 from energysim.implicit import GradientError
 from energysim.mesh import SimplexMesh, TetMesh, TriMesh, load_mesh
 from energysim.objective import Objective
 from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
 from energysim.rollout import rollout
-from energysim.scene import INTEGRATORS, Scene
+from energysim.scene import EXPLICIT_INTEGRATORS, IMPLICIT_INTEGRATORS, INTEGRATORS, Scene
 from energysim.step import StepResult, solve_static, step, timestep
 from energysim.viewer import Viewer
 
@@ -44,7 +45,10 @@ __all__ = [
     "FibreMuscles",
     "EnergyTerm",
     "Gravity",
+    "EXPLICIT_INTEGRATORS",
+    "IMPLICIT_INTEGRATORS",
     "INTEGRATORS",
+    "InstabilityError",
     "Inertia",
     "NeoHookean",
     "NewtonCG",

@@ -13,7 +13,9 @@ from energysim.energies.gravity import Gravity
 from energysim.mesh import SimplexMesh
 from energysim.optim import NewtonCG, Solver
 
-INTEGRATORS = ("implicit_euler", "tr_bdf2")
+IMPLICIT_INTEGRATORS = ("implicit_euler", "tr_bdf2")
+EXPLICIT_INTEGRATORS = ("leapfrog",)
+INTEGRATORS = IMPLICIT_INTEGRATORS + EXPLICIT_INTEGRATORS
 
 
 class Scene(nn.Module):
@@ -26,8 +28,12 @@ class Scene(nn.Module):
         gravity: acceleration of gravity, d components, in m/s²; None: no gravity term at all.
         vertex_mass: optional lumped masses, shape `[n]`, in kg, instead of density × rest volume.
         solver: the optimizer for each step; default `NewtonCG(tol=1e-5)`.
-        integrator: "implicit_euler" (one solve per step, first order, damps oscillations) or
-            "tr_bdf2" (two solves per step, second order, keeps slow oscillations): see `step`.
+        integrator: "implicit_euler" (one solve per step, first order, damps oscillations),
+            "tr_bdf2" (two solves per step, second order, keeps slow oscillations) or "leapfrog"
+            (explicit position Verlet, second order, no solve, no contact, stable only below the
+            Courant limit: `energysim.explicit`); see `step`.
+        substeps: the leapfrog substeps of dt / substeps one step takes (implicit steps take dt
+            whole and need 1).
 
     Example:
         >>> scene = Scene(TetMesh.box(size=(1, .2, .2), cells=(10, 2, 2)), dt=1/60)
@@ -43,6 +49,7 @@ class Scene(nn.Module):
         vertex_mass: Tensor | None = None,
         solver: Solver | None = None,
         integrator: str = "implicit_euler",
+        substeps: int = 1,
     ) -> None:
         super().__init__()
         if not isinstance(mesh, SimplexMesh):
@@ -50,6 +57,7 @@ class Scene(nn.Module):
         self.mesh = mesh
         self.dt = dt
         self.integrator = integrator
+        self.substeps = substeps
         if vertex_mass is None:
             # density may be a tensor that requires grad (material identification): check its value
             checked = torch.as_tensor(density).detach()
@@ -91,6 +99,17 @@ class Scene(nn.Module):
         if value not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {value!r}")
         self._integrator = value
+
+    @property
+    def substeps(self) -> int:
+        """Explicit substeps per step (`integrator="leapfrog"`), each of dt / substeps."""
+        return self._substeps
+
+    @substeps.setter
+    def substeps(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"substeps must be an integer >= 1, got {value!r}")
+        self._substeps = value
 
     @property
     def dim(self) -> int:

@@ -1,5 +1,5 @@
-"""One time step as a minimisation (implicit Euler, or the two-stage second-order TR-BDF2), and
-quasi-static equilibrium.
+"""One time step as a minimisation (implicit Euler, or the two-stage second-order TR-BDF2), or
+as explicit leapfrog substeps (`energysim.explicit`), and quasi-static equilibrium.
 
 x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x),   v_{n+1} = (x_{n+1} − x_n)/h.
 """
@@ -7,6 +7,7 @@ x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x),   v_{n+1
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -15,13 +16,14 @@ import torch
 from torch import Tensor
 
 from energysim import compiled as compiled_functions
+from energysim import explicit
 from energysim.energies.base import EnergyTerm
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
 from energysim.optim.base import ConvergenceError, ConvergenceWarning
 from energysim.optim.newton_cg import EAGER_DIRECT_MAX_DOFS
-from energysim.scene import Scene
+from energysim.scene import EXPLICIT_INTEGRATORS, Scene
 
 
 @dataclass(frozen=True)
@@ -346,6 +348,86 @@ def _second_order_where_safe(
     return x_next, v_next, dataclasses.replace(stats, x=x_next.detach())
 
 
+def _explicit_step(
+    scene: Scene, x_prev: Tensor, v_prev: Tensor, action: Tensor | None, solver: Solver, differentiable: bool
+) -> tuple[Tensor, Tensor, SolverResult]:
+    """`scene.substeps` leapfrog substeps (`energysim.explicit`), compiled where `solver` compiles and
+    nothing needs their graph; raises `InstabilityError` where one blew up."""
+    terms = list(scene.terms)
+    explicit.check_terms(terms)
+    h = scene.dt / scene.substeps
+    # pinned vertices stay where the state has them, whatever velocity it gives them
+    v_start = v_prev * scene.free[:, None].to(v_prev.dtype)
+    moved = None
+    if solver.compile and not differentiable and compiled_functions.has_closed_forms(terms, hessian=False):
+        inverse_mass = scene.free.to(x_prev.dtype) / scene.vertex_mass
+        moved = compiled_functions.leapfrog(
+            terms, action, scene.free, inverse_mass, x_prev.detach(), v_start.detach(), h, scene.substeps
+        )
+    if moved is None:
+
+        def acceleration(x: Tensor) -> Tensor:
+            return _acceleration(scene, x, action, differentiable, solver)
+
+        moved = explicit.leapfrog(x_prev, v_start, h, scene.substeps, acceleration)
+    x_next, v_next = moved
+    with torch.no_grad():
+        finite = torch.isfinite(x_next).all(dim=(-1, -2)) & torch.isfinite(v_next).all(dim=(-1, -2))
+        energy_before, motion_before, scale_before = _energies(scene, x_prev, v_start, action, solver.compile)
+        energy_after, motion_after, scale_after = _energies(
+            scene, x_next.where(finite[:, None, None], x_prev), v_next.nan_to_num(), action, solver.compile
+        )
+        allowance = (
+            explicit.ENERGY_GAIN_LIMIT * motion_before
+            + explicit.ENERGY_GAIN_FLOOR * motion_after
+            + ENERGY_ROUNDING * torch.maximum(scale_before, scale_after)
+        )
+        unstable = ~finite | (energy_after > energy_before + allowance)
+    if bool(unstable.any()):
+        entry = int(torch.nonzero(unstable)[0])
+        energies = (
+            float(energy_before[entry]),
+            float(energy_after[entry]) if bool(finite[entry]) else math.nan,
+        )
+        _raise_unstable(scene, x_prev, action, energies, entry)
+    stats = SolverResult(
+        x=x_next.detach(),
+        iterations=0,
+        grad_evals=scene.substeps,
+        hvp_evals=0,
+        energy_evals=2,
+        residual=0.0,
+        converged=True,
+        solver="leapfrog",
+        tol=0.0,
+    )
+    return x_next, v_next, stats
+
+
+def _raise_unstable(
+    scene: Scene, x_prev: Tensor, action: Tensor | None, energies: tuple[float, float], entry: int
+) -> None:
+    """Raise `InstabilityError` for batch entry `entry`, with its energies at the step's start and end
+    (J) and its Courant limit."""
+    rows = slice(entry, entry + 1)
+    act = None if action is None else action[rows].detach()
+    objective = Objective(list(scene.terms), scene.free, scene.dt / scene.vertex_mass, act)
+    x_start = x_prev[rows].detach()
+    limit = explicit.stable_step(objective.hessian(x_start), scene.vertex_mass, scene.free, x_start)
+    h = scene.dt / scene.substeps
+    if math.isfinite(limit):
+        substeps = math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))
+        advice = f"at least {substeps} substeps of dt = {scene.dt:.4g} s"
+    else:
+        advice = "a smaller step"
+    raise explicit.InstabilityError(
+        f"the leapfrog step blew up: h = {h:.4g} s ({scene.substeps} substeps of dt = {scene.dt:.4g} s); "
+        f"batch entry {entry}'s energy went from {energies[0]:.6g} J to {energies[1]:.6g} J in one "
+        f"step. Its Courant limit at the step's start is about 2/ω_max = {limit:.4g} s (ω_max² the "
+        f"largest eigenvalue of M⁻¹H): use {advice}, or an implicit integrator"
+    )
+
+
 def step(
     scene: Scene,
     state: Tensor,
@@ -359,6 +441,11 @@ def step(
 
     "implicit_euler": x_{n+1} = argmin ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ E_i(x), v_{n+1} = (x_{n+1} − x_n)/h;
     first order, and it damps every oscillation by 1/sqrt(1 + (ωh)²) per step.
+
+    "leapfrog": `scene.substeps` explicit position-Verlet substeps of h/substeps (`energysim.explicit`):
+    second order and symplectic, one gradient per substep and no solve, stable only below the
+    Courant limit h ω_max < 2, and for scenes without contact. A step that blew up raises
+    `InstabilityError` with the limit's estimate. The solver only says whether to compile.
 
     "tr_bdf2": the composite trapezoidal / three-point backward-difference step with γ = ½
     (Bank et al. 1985; Bathe & Baig 2005), second order and L-stable: slow motion keeps its
@@ -410,6 +497,13 @@ def step(
         state.requires_grad or (action is not None and action.requires_grad) or bool(parameters)
     )
     h = scene.dt
+    if scene.integrator in EXPLICIT_INTEGRATORS:
+        return _result(*_explicit_step(scene, x_prev, v_prev, action, solver, wants_grad), state)
+    if scene.substeps != 1:
+        raise ValueError(
+            f"substeps = {scene.substeps}: an implicit step takes dt whole (substeps = 1); substeps are "
+            "for the explicit integrator, integrator='leapfrog'"
+        )
 
     def stage(x_start: Tensor, v_start: Tensor, dt: float, act: Tensor | None) -> tuple[Tensor, SolverResult]:
         return _stage(
@@ -436,8 +530,13 @@ def step(
         x_next, v_next, stats = _second_order_where_safe(
             scene, x_prev, v_prev, action, implicit_euler, tr_bdf2, compiled=solver.compile
         )
+    return _result(x_next, v_next, stats, state)
+
+
+def _result(x_next: Tensor, v_next: Tensor, stats: SolverResult, like: Tensor) -> StepResult:
+    """The new state `[x.flatten(), v.flatten()]`, shaped like the old one `like`, and the report."""
     new_state = torch.cat([x_next.reshape(x_next.shape[0], -1), v_next.reshape(v_next.shape[0], -1)], dim=-1)
-    return StepResult(state=new_state.reshape(state.shape), stats=stats)
+    return StepResult(state=new_state.reshape(like.shape), stats=stats)
 
 
 def timestep(

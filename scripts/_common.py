@@ -24,7 +24,7 @@ from energysim.fem.materials import stable_neo_hookean_density
 SOLVERS = ("newton-cg", "lbfgs", "adam")
 # each of `es.INTEGRATORS`' order of accuracy in h away from contact (on a step that touches an
 # obstacle TR-BDF2 takes an implicit-Euler step): what the benchmarks' convergence checks expect
-INTEGRATOR_ORDER = {"implicit_euler": 1, "tr_bdf2": 2}
+INTEGRATOR_ORDER = {"implicit_euler": 1, "tr_bdf2": 2, "leapfrog": 2}
 # GIF players clamp very short frame delays (under 2 cs) to slow ones, so the GIF plays at most this fast.
 MAX_GIF_FPS = 25.0
 

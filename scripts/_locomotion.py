@@ -391,7 +391,12 @@ def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.Argume
     add("--optimizer", "--solver", dest="optimizer", choices=SOLVERS, default="newton-cg")
     add("--tol", type=float, default=spec.tol, help="velocity-residual tolerance in m/s")
     # steps that touch the ground are implicit Euler either way; TR-BDF2 helps airborne phases (the jumper)
-    add("--integrator", choices=es.INTEGRATORS, default="implicit_euler", help="time integrator, see es.step")
+    add(
+        "--integrator",
+        choices=es.IMPLICIT_INTEGRATORS,
+        default="implicit_euler",
+        help="time integrator, see es.step",
+    )
     add("--friction", type=float, default=spec.friction, help="Coulomb coefficient of the ground")
     add("--frequency", type=float, default=creature.gait_frequency, help="gait frequency f in Hz")
     add("--amplitude", type=float, default=creature.gait_amplitude, help="gait amplitude A in [0, 1]")

@@ -1,10 +1,10 @@
 """Work-precision: wall time per simulated second against trajectory error, per optimizer, h and tolerance.
 
 Three scenes, each simulated from the same initial state by every optimizer (Adam, L-BFGS, Newton–CG and
-projected Newton, `NewtonCG(project_hessian=True)`) with every integrator (`es.INTEGRATORS`: implicit
-Euler, first order, one solve per step; TR-BDF2, second order, two solves per step; Adam with implicit
-Euler only, as it is too slow to run twice) at every time step h and velocity-residual tolerance of a
-grid, float64:
+projected Newton, `NewtonCG(project_hessian=True)`) with every implicit integrator
+(`es.IMPLICIT_INTEGRATORS`: implicit Euler, first order, one solve per step; TR-BDF2, second order,
+two solves per step; Adam with implicit Euler only, as it is too slow to run twice) at every time
+step h and velocity-residual tolerance of a grid, float64:
 - cantilever: `cantilever.build_scene` (1 × 0.2 × 0.2 m, E = 100 kPa, ν = 0.3, 240 tets), released
   from rest, swings down under gravity;
 - drop: `bench_step.build_landing_scene` (a 0.2 m cube, 384 tets) on `es.Ground(0.0, friction=0.5)`,
@@ -232,7 +232,7 @@ class Run:
             reference tolerance with a sweep h and integrator: the exact discrete trajectory of that
             h and integrator) or "sweep".
         optimizer: optimizer name.
-        integrator: one of `es.INTEGRATORS`: how the scene steps in time.
+        integrator: one of `es.IMPLICIT_INTEGRATORS`: how the scene steps in time.
         dt: time step h as a fraction of a second, e.g. "1/60"; dt_s: the same in s.
         tol: velocity-residual tolerance, m/s.
         status: "ok", "unconverged" (some steps stopped at max_iter), "diverged" (a non-finite
@@ -1098,8 +1098,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add(
         "--integrators",
         nargs="+",
-        choices=list(es.INTEGRATORS),
-        default=list(es.INTEGRATORS),
+        choices=list(es.IMPLICIT_INTEGRATORS),
+        default=list(es.IMPLICIT_INTEGRATORS),
         help="time integrators of the tight runs and the sweep (Adam: implicit_euler only)",
     )
     add(
@@ -1135,7 +1135,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--reference-dt", type=parse_dt, default=None, help="h of x_ref (default 1/3840; --quick 1/960)")
     add(
         "--reference-integrator",
-        choices=list(es.INTEGRATORS),
+        choices=list(es.IMPLICIT_INTEGRATORS),
         default="tr_bdf2",
         help="integrator of x_ref and its check (tr_bdf2: second order away from contact)",
     )
