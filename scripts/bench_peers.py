@@ -34,9 +34,11 @@ damped scheme (and the semi-implicit integrator never settles without added damp
 the physics), and this beam's sag (about 0.7 m for a 1 m beam) is far outside linear elasticity, so a
 linear scikit-fem static solution is no reference for it.
 
-Runs. energysim: Newton–CG with each integrator of `--integrators` (implicit Euler: one solve per
-step, first order; TR-BDF2: two solves per step, second order; see `energysim.step.step`) at
-h = 1/24 … 1/240 s and the tolerances `--tols`, and the reference's own runs (tol 1e-9 m/s, tighter
+Runs. energysim: Newton–CG with each implicit integrator of `--integrators` (implicit Euler: one
+solve per step, first order; TR-BDF2: two solves per step, second order; see `energysim.step.step`) at
+h = 1/24 … 1/240 s and the tolerances `--tols`, the explicit leapfrog (position Verlet, second
+order, one gradient per substep, no solve) at `--leapfrog-substeps` substeps per 1/12 s, and the
+reference's own runs (tol 1e-9 m/s, tighter
 than their error needs: a conservative cost). Newton–CG solves its linear systems directly up to
 `--direct-max-dofs` DOFs (5000 by default, so the 1k-tet beam's 768 DOFs take the block-tridiagonal
 level solve of `direct="auto"`; the solver's own default, 600, would send them to CG), by CG above
@@ -44,7 +46,8 @@ that. Peer: the semi-implicit integrator at its largest stable step, found by do
 1/(12·`--search-start`) s until the run blows up (non-finite, or farther than 1 m from the reference)
 or its error exceeds `--accuracy-limit`, then bisecting the steps per 1/12 s between the last good
 and the first bad count (with the same ν as energysim); it is then also timed at 1/2 and 1/4 of that
-step.
+step, and at finer steps (halving, to 1/`--finest-peer-fraction`) until its error is no larger than
+energysim's smallest, so that every energysim run has a peer run at equal or smaller error.
 VBD (implicit Euler by vertex block descent, a fixed number of iterations per step) at `--vbd`
 settings. With `--compile` energysim's runs evaluate the step objective by `torch.compile`d functions
 (`NewtonCG(compile=True)`, which also takes the band Cholesky solve), compiled in an untimed run of
@@ -64,6 +67,8 @@ Run:  python scripts/bench_peers.py --out docs/benchmarks            # 1k tets, 
       python scripts/bench_peers.py --compile --out docs/benchmarks/bench_peers_compiled
       python scripts/bench_peers.py --compile --reuse-factorization 0.5 \\
           --out docs/benchmarks/bench_peers_reuse
+      python scripts/bench_peers.py --compile --integrators leapfrog \\
+          --out docs/benchmarks/bench_peers_leapfrog
 Writes: <out>/bench_peers.csv (every run), bench_peers.md (tables), bench_peers.png (error against
 wall time per simulated second) and bench_peers_search.csv (the stable-step search).
 """
@@ -94,6 +99,8 @@ CHECKPOINT_S = 1.0 / 12.0  # every step size below divides it
 YOUNGS_MODULUS, POISSONS_RATIO, DENSITY, GRAVITY = 1e5, 0.3, 1000.0, 9.81  # bench_step's cantilever
 DEFAULT_DTS = (2, 4, 5, 10, 20)  # energysim steps per 1/12 s: h = 1/24, 1/48, 1/60, 1/120, 1/240 s
 DEFAULT_TOLS = (1e-2, 1e-3, 1e-5)  # m/s
+# explicit leapfrog substeps per 1/12 s: 27 (h = 3.09 ms) is past its Courant limit on the 1k-tet beam
+DEFAULT_LEAPFROG_SUBSTEPS = (27, 28, 32, 48, 96)
 REFERENCE_TOL = 1e-9  # m/s
 # finest reference steps per 1/12 s. On the 1k-tet beam over 1 s, TR-BDF2's two runs at 1/960 and
 # 1/1920 s give an estimated error of 7e-6 m in 61 s (one thread); implicit Euler's three down to
@@ -271,6 +278,60 @@ def energysim_row(
         note=f"{run.iterations / run.steps:.1f} Newton iterations, {run.hvps / run.steps:.0f} HVPs per step"
         + (f"; {note}" if note else ""),
     )
+
+
+def leapfrog_rows(scene: es.Scene, tets: int, reference: Tensor, args: argparse.Namespace) -> list[Run]:
+    """energysim's explicit leapfrog at each of `--leapfrog-substeps` substeps per 1/12 s (one step of
+    1/12 s each, compiled with `--compile`); a run that blows up is a row with status "unstable"."""
+    rows = []
+    for substeps in args.leapfrog_substeps:
+        solver = es.NewtonCG(compile=args.compile)  # only its `compile` matters to an explicit step
+        scene.substeps = substeps
+        try:
+            if args.compile:  # compiled before timing, as the peer's kernels are: one untimed 1/12 s
+                energysim_trajectory(scene, 1, 1, solver, "leapfrog")
+            timed = [
+                energysim_trajectory(scene, 1, args.checkpoints, solver, "leapfrog")
+                for _ in range(args.energysim_repeats)
+            ]
+        except es.InstabilityError as error:
+            timed, failure = [], str(error).split(";")[0]
+        finally:
+            scene.substeps = 1
+        h = CHECKPOINT_S / substeps
+        method = f"leapfrog{' compiled' if args.compile else ''}"
+        if not timed:
+            row = Run(
+                tets=tets,
+                simulator=ENERGYSIM,
+                integrator="leapfrog",
+                method=method,
+                tol=0.0,
+                dt=h,
+                steps_per_checkpoint=substeps,
+                wall_s_per_sim_s=math.nan,
+                repeats=0,
+                error_m=math.inf,
+                final_error_m=math.inf,
+                converged="–",
+                ratio=math.nan,
+                ratio_vbd=math.nan,
+                status="unstable",
+                note=failure,
+            )
+        else:
+            run = replace(timed[0], wall_s=statistics.median(r.wall_s for r in timed))
+            row = replace(
+                energysim_row(tets, 0.0, run, reference, repeats=len(timed)),
+                method=method,
+                dt=h,
+                steps_per_checkpoint=substeps,
+                converged="–",
+                note="explicit: one gradient per substep, no solve",
+            )
+        rows.append(row)
+        print(row, flush=True)
+    return rows
 
 
 def errors(positions: Tensor, reference: Tensor) -> tuple[float, float]:
@@ -492,7 +553,9 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
     info = {"tets": tets, "dofs": scene.num_dofs, "reference_error_m": estimate, "wall_s": reference_wall}
     print(f"{size}: reference in {reference_wall:.0f} s, its error ≈ {estimate:.1e} m", flush=True)
     runs: list[Run] = []
-    for integrator in args.integrators:
+    if "leapfrog" in args.integrators:
+        runs += leapfrog_rows(scene, tets, reference, args)
+    for integrator in [name for name in args.integrators if name != "leapfrog"]:
         for tol in args.tols:
             for steps in args.dts:
                 solver = es.NewtonCG(
@@ -559,11 +622,19 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
             Run(**{**asdict(search[-1]), "note": f"fails even at {args.search_start} steps per 1/12 s"})
         )
     else:
-        for factor in (1, 2, 4):
+        # 1, 1/2 and 1/4 of the largest stable step, then finer while some energysim run is more
+        # accurate than the finest so far (up to 1/`--finest-peer-fraction`): equal error, timed
+        ours = [r.error_m for r in runs if r.simulator == ENERGYSIM and "reference" not in r.note]
+        smallest = min((e for e in ours if math.isfinite(e)), default=math.inf)
+        factor = 1
+        while factor <= args.finest_peer_fraction:
             run = peer_run(semi, largest * factor, args.checkpoints, reference, args.repeats, tets, math.inf)
             note = "largest stable step" if factor == 1 else f"1/{factor} of the largest stable step"
             runs.append(Run(**{**asdict(run), "note": note}))
             print(runs[-1], flush=True)
+            if factor >= 4 and not run.error_m > smallest:
+                break
+            factor *= 2
     for setting in args.vbd:
         steps, iterations = (int(part) for part in setting.split(":"))
         vbd = PeerCantilever(scene, "vbd", iterations, args.poissons_ratio)
@@ -575,8 +646,8 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
 
 def observed_order(runs: list[Run], tets: int, integrator: str) -> float:
     """Slope of log(error) against log(h) between the largest and the smallest h of energysim's runs with
-    `integrator` at `tets` and the tightest tolerance (the reference's own runs left out); NaN with fewer
-    than two such runs or a non-positive, non-finite error."""
+    `integrator` at `tets` and the tightest tolerance (the reference's own runs and runs that blew up
+    left out); NaN with fewer than two such runs or a non-positive error."""
     ours = [
         r
         for r in runs
@@ -584,6 +655,7 @@ def observed_order(runs: list[Run], tets: int, integrator: str) -> float:
         and r.simulator == ENERGYSIM
         and r.integrator == integrator
         and "reference" not in r.note
+        and math.isfinite(r.error_m)
     ]
     if not ours:
         return math.nan
@@ -648,7 +720,12 @@ def markdown(
             if args.reuse_factorization is not None
             else ""
         )
-        + "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step). "
+        + "implicit_euler takes one solve per step, tr_bdf2 two (each of a shorter effective step); "
+        + "leapfrog is explicit (position Verlet, `Scene.substeps` substeps per 1/12 s step, one gradient "
+        + "each, no solve; its tol column is 0) and stable only below the Courant limit, so its h is "
+        + "that of a substep; a run that blew up is listed as unstable. The peer runs at 1, 1/2 and 1/4 "
+        + "of its largest stable step, then finer until its error is no larger than energysim's "
+        + "smallest. "
         f"Wall time per simulated second: median of {args.repeats} runs for the peer, "
         + (f"of {args.energysim_repeats} runs" if args.energysim_repeats > 1 else "one run")
         + " for energysim. ratio = energysim's wall time / the fastest stable peer run whose error is "
@@ -830,7 +907,22 @@ def main(argv: list[str] | None = None) -> list[Run]:
         nargs="+",
         choices=list(es.INTEGRATORS),
         default=list(es.INTEGRATORS),
-        help="energysim's time integrators; every h and tolerance runs with each",
+        help="energysim's time integrators; every h and tolerance runs with each implicit one, and "
+        "leapfrog at each of --leapfrog-substeps",
+    )
+    parser.add_argument(
+        "--leapfrog-substeps",
+        nargs="+",
+        type=int,
+        default=list(DEFAULT_LEAPFROG_SUBSTEPS),
+        help="explicit leapfrog substeps per 1/12 s (28: h = 2.98 ms, its Courant limit is 3.0 ms)",
+    )
+    parser.add_argument(
+        "--finest-peer-fraction",
+        type=int,
+        default=64,
+        help="after 1, 1/2 and 1/4 of its largest stable step, the peer runs at finer steps (halving) "
+        "until its error is no larger than energysim's smallest, down to 1/this of that step",
     )
     parser.add_argument(
         "--reference-integrator",
