@@ -301,23 +301,15 @@ def leapfrog_rows(scene: es.Scene, tets: int, reference: Tensor, args: argparse.
         h = CHECKPOINT_S / substeps
         method = f"leapfrog{' compiled' if args.compile else ''}"
         if not timed:
-            row = Run(
-                tets=tets,
-                simulator=ENERGYSIM,
+            row = replace(
+                run_without_result(tets, ENERGYSIM, "unstable", failure),
                 integrator="leapfrog",
                 method=method,
                 tol=0.0,
                 dt=h,
                 steps_per_checkpoint=substeps,
-                wall_s_per_sim_s=math.nan,
-                repeats=0,
                 error_m=math.inf,
                 final_error_m=math.inf,
-                converged="–",
-                ratio=math.nan,
-                ratio_vbd=math.nan,
-                status="unstable",
-                note=failure,
             )
         else:
             run = replace(timed[0], wall_s=statistics.median(r.wall_s for r in timed))
@@ -332,6 +324,28 @@ def leapfrog_rows(scene: es.Scene, tets: int, reference: Tensor, args: argparse.
         rows.append(row)
         print(row, flush=True)
     return rows
+
+
+def run_without_result(tets: int, simulator: str, status: str, note: str) -> Run:
+    """A row for a run that produced nothing to time or measure (it blew up, or could not run)."""
+    return Run(
+        tets=tets,
+        simulator=simulator,
+        integrator="–",
+        method="–",
+        tol=math.nan,
+        dt=math.nan,
+        steps_per_checkpoint=0,
+        wall_s_per_sim_s=math.nan,
+        repeats=0,
+        error_m=math.nan,
+        final_error_m=math.nan,
+        converged="–",
+        ratio=math.nan,
+        ratio_vbd=math.nan,
+        status=status,
+        note=note,
+    )
 
 
 def errors(positions: Tensor, reference: Tensor) -> tuple[float, float]:
@@ -589,26 +603,8 @@ def run_size(size: str, args: argparse.Namespace) -> tuple[list[Run], list[Run],
     search: list[Run] = []
     missing = peer_missing()
     if missing is not None:
-        runs.append(
-            Run(
-                tets=tets,
-                simulator=PEER,
-                integrator="–",
-                method="–",
-                tol=math.nan,
-                dt=math.nan,
-                steps_per_checkpoint=0,
-                wall_s_per_sim_s=math.nan,
-                repeats=0,
-                error_m=math.nan,
-                final_error_m=math.nan,
-                converged="–",
-                ratio=math.nan,
-                ratio_vbd=math.nan,
-                status="not installed",
-                note=f"{missing}; install with `pip install warp-lang newton`",
-            )
-        )
+        note = f"{missing}; install with `pip install warp-lang newton`"
+        runs.append(run_without_result(tets, PEER, "not installed", note))
         print(f"the peer is not installed ({missing}); only energysim ran", flush=True)
         return with_ratios(runs), search, info
     semi = PeerCantilever(scene, "semi-implicit", poissons_ratio=args.poissons_ratio)
