@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from energysim.derivatives import HessianOperator
-from energysim.energies.base import EnergyTerm
+from energysim.energies.base import EnergyTerm, limits_steps
 from energysim.optim.base import ConvergenceError
 
 # The most energy an explicit step may gain: `ENERGY_GAIN_LIMIT` of its energy of motion and
@@ -60,8 +60,7 @@ def check_terms(terms: Sequence[EnergyTerm]) -> None:
     offending = [
         type(term).__name__
         for term in terms
-        if type(term).step_limit is not EnergyTerm.step_limit
-        or type(term).lagged_terms is not EnergyTerm.lagged_terms
+        if limits_steps(term) or type(term).lagged_terms is not EnergyTerm.lagged_terms
     ]
     if offending:
         raise ValueError(

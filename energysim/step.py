@@ -17,7 +17,7 @@ from torch import Tensor
 
 from energysim import compiled as compiled_functions
 from energysim import explicit
-from energysim.energies.base import EnergyTerm
+from energysim.energies.base import EnergyTerm, limits_steps
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
@@ -55,7 +55,7 @@ def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
 
 
 def _limits_steps(terms: list[EnergyTerm]) -> bool:
-    return any(type(term).step_limit is not EnergyTerm.step_limit for term in terms)
+    return any(limits_steps(term) for term in terms)
 
 
 def _warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: float) -> Tensor:

@@ -178,6 +178,12 @@ def check_positive(value: Tensor, name: str, unit: str) -> None:
         raise ValueError(f"{name} must be finite and > 0 {unit}; offending entries {index}")
 
 
+def limits_steps(term: EnergyTerm) -> bool:
+    """Whether `term` bounds how far a step may go (`EnergyTerm.step_limit`): a contact barrier,
+    infinite at its obstacle."""
+    return type(term).step_limit is not EnergyTerm.step_limit
+
+
 def has_element_blocks(term: EnergyTerm) -> bool:
     """Whether `term` enters Hessians as element blocks: a nonlinear element term without a
     per-vertex diagonal (`hessian_diagonal`). The eager assembly, the sparsity pattern and the
