@@ -15,6 +15,7 @@ from energysim.energies import (
     Inertia,
     NeoHookean,
     Springs,
+    Viscosity,
 )
 from energysim.explicit import InstabilityError
 from energysim.implicit import GradientError
@@ -23,7 +24,7 @@ from energysim.objective import Objective
 from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
 from energysim.rollout import rollout
 from energysim.scene import EXPLICIT_INTEGRATORS, IMPLICIT_INTEGRATORS, INTEGRATORS, Scene
-from energysim.step import StepResult, solve_static, step, timestep
+from energysim.step import StepResult, solve_static, stable_substeps, step, timestep
 from energysim.viewer import Viewer
 
 __all__ = [
@@ -61,10 +62,12 @@ __all__ = [
     "StepResult",
     "TetMesh",
     "TriMesh",
+    "Viscosity",
     "Viewer",
     "load_creature",
     "load_mesh",
     "solve_static",
+    "stable_substeps",
     "step",
     "timestep",
 ]

@@ -1,4 +1,5 @@
-"""The explicit integrator: position Verlet (leapfrog, drift–kick–drift), for scenes without contact.
+"""The explicit integrator: position Verlet (leapfrog, drift–kick–drift), with contact as a velocity
+projection.
 
     x_½ = x_n + ½h v_n,   v_{n+1} = v_n − h M⁻¹∇E(x_½),   x_{n+1} = x_½ + ½h v_{n+1}
 
@@ -8,8 +9,14 @@ but it is stable only while h ω_max < 2, ω_max the stiffest mode's angular fre
 limit: about 3 ms for the 810-tet, 1e5 Pa cantilever, 1/60 s needs a few substeps for anything
 stiffer than jelly). Where the limit holds it is the cheapest way to a small error: on that
 cantilever its error at h = 3 ms is 2e-4 m, where the implicit steps need h = 1/240 s and tight
-solves for the same. Contact is not for it: a barrier's stiffness grows without bound near the
-obstacle, so no fixed step is stable there, and the scene's terms are checked for it.
+solves for the same.
+
+A barrier's stiffness grows without bound near its obstacle, so no fixed explicit step is stable
+with one. Obstacles whose surface normal is defined on the surface (`HalfSpace`, `Ground`,
+`SphereObstacle`) act instead after every kick, through `Obstacle.contact_velocity`: an inelastic
+contact with Coulomb friction, the barrier's and friction's limit as d̂ and ε_v go to 0, in closed
+form per vertex. It keeps every vertex outside (the constraint is on the tangent plane, behind
+which a convex obstacle lies), and it only takes energy out. Other contact terms are refused.
 
 A step of `Scene.dt` takes `Scene.substeps` Verlet steps of dt / substeps. Instability does not
 pass silently: an unstable mode grows geometrically, so `step` compares the energy at the start
@@ -25,8 +32,10 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from energysim.contact.obstacles import HalfSpace, Obstacle, SphereObstacle
 from energysim.derivatives import HessianOperator
 from energysim.energies.base import EnergyTerm, limits_steps
+from energysim.mesh.simplex import format_indices
 from energysim.optim.base import ConvergenceError
 
 # The most energy an explicit step may gain: `ENERGY_GAIN_LIMIT` of its energy of motion and
@@ -45,14 +54,31 @@ POWER_ITERATIONS = 30
 # iteration approaches ω_max from below, and a body stiffens as it deforms (a soft beam falling from
 # horizontal, `tests/test_explicit.py`: from 12.3 ms at rest to 10.1 ms bent).
 COURANT_SAFETY = 0.75
+# The obstacles whose normal is defined on their surface, where resting vertices sit: a box's
+# distance gradient vanishes on its faces, so its contact has no direction there.
+EXPLICIT_OBSTACLES = (HalfSpace, SphereObstacle)
+# How far inside an obstacle (a fraction of its d̂) a step may start: the projection puts vertices
+# on the surface, where rounding leaves them a few ulps either side.
+START_DEPTH_TOLERANCE = 1e-6
 
 
 class InstabilityError(ConvergenceError):
     """An explicit step blew up: its step is past the stable (Courant) limit of the scene."""
 
 
+def is_explicit_contact(term: EnergyTerm) -> bool:
+    """Whether `term` is an obstacle that explicit steps handle by `Obstacle.contact_velocity`."""
+    return isinstance(term, EXPLICIT_OBSTACLES)
+
+
+def is_dissipative(term: EnergyTerm) -> bool:
+    """Whether `term` dissipates through a velocity-dependent force (`Viscosity`), which explicit
+    kicks take from its `dissipation_gradient(x, v)` (see `leapfrog`)."""
+    return hasattr(term, "dissipation_gradient")
+
+
 def check_terms(terms: Sequence[EnergyTerm]) -> None:
-    """Refuse terms an explicit step cannot integrate: contact barriers and friction.
+    """Refuse terms an explicit step cannot integrate: contact other than `EXPLICIT_OBSTACLES`.
 
     Raises:
         ValueError: naming the offending terms.
@@ -60,27 +86,94 @@ def check_terms(terms: Sequence[EnergyTerm]) -> None:
     offending = [
         type(term).__name__
         for term in terms
-        if limits_steps(term) or type(term).lagged_terms is not EnergyTerm.lagged_terms
+        if not (is_explicit_contact(term) or is_dissipative(term))
+        and (limits_steps(term) or type(term).lagged_terms is not EnergyTerm.lagged_terms)
     ]
     if offending:
         raise ValueError(
-            f"the explicit integrator has no contact: {', '.join(offending)} need the implicit step, "
-            "whose line search keeps every iterate outside the obstacle (a barrier's stiffness grows "
-            "without bound near contact, so no fixed explicit step is stable there); use "
-            "integrator='implicit_euler' or 'tr_bdf2'"
+            f"the explicit integrator has no contact model for {', '.join(offending)}: it handles "
+            "HalfSpace, Ground and SphereObstacle (inelastic contact with Coulomb friction, after every "
+            "kick); other contact needs the implicit step, whose line search keeps every iterate "
+            "outside the obstacle; use integrator='implicit_euler' or 'tr_bdf2'"
         )
 
 
+def split_terms(terms: Sequence[EnergyTerm]) -> tuple[list[EnergyTerm], list[Obstacle]]:
+    """The terms whose gradients are forces, and the obstacles that act by contact projection."""
+    forces = [term for term in terms if not is_explicit_contact(term)]
+    obstacles = [term for term in terms if is_explicit_contact(term)]
+    return forces, obstacles  # type: ignore[return-value]
+
+
+def check_start(obstacles: Sequence[Obstacle], x: Tensor) -> None:
+    """Raise ValueError naming the vertices that start a step inside an obstacle (deeper than
+    `START_DEPTH_TOLERANCE` × its d̂)."""
+    for obstacle in obstacles:
+        distance = obstacle.signed_distance(obstacle._vertex_positions(x.detach()))
+        inside = (distance < -START_DEPTH_TOLERANCE * obstacle.barrier_distance).any(dim=0)
+        if bool(inside.any()):
+            index = obstacle.element_vertices[inside, 0]
+            raise ValueError(
+                f"the state is not admissible: vertices {format_indices(index)} are inside {obstacle!r} "
+                f"(signed distance down to {float(distance.min()):.3g} m); every step must start outside"
+            )
+
+
 def leapfrog(
-    x: Tensor, v: Tensor, h: float, substeps: int, acceleration: Callable[[Tensor], Tensor]
+    x: Tensor,
+    v: Tensor,
+    h: float,
+    substeps: int,
+    acceleration: Callable[[Tensor], Tensor],
+    contact: Callable[[Tensor, Tensor, float], Tensor] | None = None,
+    damping: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """`substeps` position-Verlet steps of `h` from (x, v), `[B, n, d]` each; `acceleration(x)` is
-    −M⁻¹∇E(x), zero on pinned vertices (whose velocity must be zero)."""
+    −M⁻¹∇E(x), zero on pinned vertices (whose velocity must be zero).
+
+    `damping(x, v)`, if given, is the viscous acceleration −M⁻¹∂D/∂v (`is_dissipative`), taken
+    right after the elastic kick at the velocity it left: a splitting, first order in the damping
+    as any explicit damping is, which keeps the viscous kernels from competing with the elastic
+    ones for the same loop when compiled. `contact(x, v, horizon)`, if given, then projects the
+    velocities, for the whole step h that they drive (the half drift that ends this substep and
+    the one that starts the next), and once before the first half drift, so that every position
+    stays outside."""
+    if contact is not None:
+        v = contact(x, v, 0.5 * h)
     for _ in range(substeps):
         x = x + (0.5 * h) * v
         v = v + h * acceleration(x)
+        if damping is not None:
+            v = v + h * damping(x, v)
+        if contact is not None:
+            v = contact(x, v, h)
         x = x + (0.5 * h) * v
     return x, v
+
+
+def stable_damping_step(
+    dissipative: Sequence[EnergyTerm], x: Tensor, vertex_mass: Tensor, free: Tensor
+) -> float:
+    """The largest step, in s, that the viscous kick of `leapfrog` keeps stable at positions `x`
+    `[1, n, d]`: 1/γ_max, with γ_max the largest eigenvalue of M⁻¹C and C = ∂²D/∂v² the viscous
+    damping matrix (D is quadratic in v), by power iteration on v ↦ M⁻¹∂D/∂v; inf without damping.
+
+    Why 1/γ and not 2/γ: after the elastic kick, the viscous one scales a mode's velocity by 1 − hγ,
+    and with the drifts around it the substep's map keeps its spectral radius at most 1 only while
+    hγ ≤ 1, whatever hω (checked for hω from 0.5 to 1.8)."""
+    if not dissipative:
+        return math.inf
+    free_f = free[:, None].to(x.dtype)
+    generator = torch.Generator(device="cpu").manual_seed(0)
+    vector = torch.randn(x.shape, generator=generator, dtype=x.dtype).to(x.device) * free_f
+    largest = 0.0
+    with torch.no_grad():
+        for _ in range(POWER_ITERATIONS):
+            vector = vector / vector.norm().clamp_min(torch.finfo(x.dtype).tiny)
+            product = sum(term.dissipation_gradient(x, vector) for term in dissipative) * free_f
+            largest = float((vector * product).sum() / (vector * vector * vertex_mass[:, None]).sum())
+            vector = product / vertex_mass[:, None]
+    return 1.0 / largest if largest > 0 else math.inf
 
 
 def stable_step(operator: HessianOperator, vertex_mass: Tensor, free: Tensor, like: Tensor) -> float:

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from energysim import compiled as compiled_functions
 from energysim import explicit
+from energysim.contact.obstacles import project_contacts
 from energysim.energies.base import EnergyTerm, limits_steps
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
@@ -182,14 +183,20 @@ def _stage(
 
 
 def _acceleration(
-    scene: Scene, x: Tensor, action: Tensor | None, differentiable: bool, solver: Solver
+    scene: Scene,
+    x: Tensor,
+    action: Tensor | None,
+    differentiable: bool,
+    solver: Solver,
+    terms: list[EnergyTerm] | None = None,
 ) -> Tensor:
-    """a = −M⁻¹∇E(x) over the scene's terms, zero on pinned vertices, shape `[B, n, d]`, in m/s².
+    """a = −M⁻¹∇E(x) over `terms` (default the scene's), zero on pinned vertices, shape `[B, n, d]`,
+    in m/s².
 
     With `differentiable` the gradient keeps its graph, so the step's backward reaches x, the
     action and the parameters through it too; otherwise it is evaluated as `solver` evaluates its
     objectives (compiled where it compiles)."""
-    terms = list(scene.terms)
+    terms = list(scene.terms) if terms is None else terms
     if differentiable:
         with torch.enable_grad():
             at = x if x.requires_grad else x.detach().requires_grad_(True)
@@ -236,13 +243,19 @@ ENERGY_GAIN_LIMIT = 1e-2
 
 
 def _energies(
-    scene: Scene, x: Tensor, v: Tensor, action: Tensor | None, compiled: bool
+    scene: Scene,
+    x: Tensor,
+    v: Tensor,
+    action: Tensor | None,
+    compiled: bool,
+    terms: list[EnergyTerm] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """At the step's action, `[B]` each in J: the total (kinetic plus the scene's potential terms),
-    the energy of motion and deformation (kinetic plus the nonlinear terms' magnitudes: gravity's
-    value depends on where the origin is), and the sum of every part's magnitude (the scale of the
-    total's rounding). With `compiled`, the terms' values come from one compiled call."""
-    terms = list(scene.terms)
+    """At the step's action, `[B]` each in J: the total (kinetic plus the potential `terms`, default
+    the scene's), the energy of motion and deformation (kinetic plus the nonlinear terms'
+    magnitudes: gravity's value depends on where the origin is), and the sum of every part's
+    magnitude (the scale of the total's rounding). With `compiled`, the terms' values come from one
+    compiled call."""
+    terms = list(scene.terms) if terms is None else terms
     with torch.no_grad():
         kinetic = 0.5 * (scene.vertex_mass[:, None] * v.detach() ** 2).sum(dim=(-1, -2))
         values = compiled_functions.term_energies(terms, action, x.detach()) if compiled else None
@@ -353,8 +366,9 @@ def _explicit_step(
 ) -> tuple[Tensor, Tensor, SolverResult]:
     """`scene.substeps` leapfrog substeps (`energysim.explicit`), compiled where `solver` compiles and
     nothing needs their graph; raises `InstabilityError` where one blew up."""
-    terms = list(scene.terms)
-    explicit.check_terms(terms)
+    explicit.check_terms(list(scene.terms))
+    terms, obstacles = explicit.split_terms(list(scene.terms))
+    explicit.check_start(obstacles, x_prev)
     h = scene.dt / scene.substeps
     # pinned vertices stay where the state has them, whatever velocity it gives them
     v_start = v_prev * scene.free[:, None].to(v_prev.dtype)
@@ -362,20 +376,51 @@ def _explicit_step(
     if solver.compile and not differentiable and compiled_functions.has_closed_forms(terms, hessian=False):
         inverse_mass = scene.free.to(x_prev.dtype) / scene.vertex_mass
         moved = compiled_functions.leapfrog(
-            terms, action, scene.free, inverse_mass, x_prev.detach(), v_start.detach(), h, scene.substeps
+            terms,
+            obstacles,
+            action,
+            scene.free,
+            inverse_mass,
+            x_prev.detach(),
+            v_start.detach(),
+            h,
+            scene.substeps,
         )
     if moved is None:
+        dissipative = [term for term in terms if explicit.is_dissipative(term)]
+        inverse_mass = scene.free.to(x_prev.dtype) / scene.vertex_mass
 
         def acceleration(x: Tensor) -> Tensor:
-            return _acceleration(scene, x, action, differentiable, solver)
+            return _acceleration(scene, x, action, differentiable, solver, terms)
 
-        moved = explicit.leapfrog(x_prev, v_start, h, scene.substeps, acceleration)
+        def damping(x: Tensor, v: Tensor) -> Tensor:
+            return -sum(term.dissipation_gradient(x, v) for term in dissipative) * inverse_mass[:, None]
+
+        def contact(x: Tensor, v: Tensor, horizon: float) -> Tensor:
+            return project_contacts(obstacles, scene.free, x, v, horizon)
+
+        moved = explicit.leapfrog(
+            x_prev,
+            v_start,
+            h,
+            scene.substeps,
+            acceleration,
+            contact if obstacles else None,
+            damping if dissipative else None,
+        )
     x_next, v_next = moved
     with torch.no_grad():
         finite = torch.isfinite(x_next).all(dim=(-1, -2)) & torch.isfinite(v_next).all(dim=(-1, -2))
-        energy_before, motion_before, scale_before = _energies(scene, x_prev, v_start, action, solver.compile)
+        energy_before, motion_before, scale_before = _energies(
+            scene, x_prev, v_start, action, solver.compile, terms
+        )
         energy_after, motion_after, scale_after = _energies(
-            scene, x_next.where(finite[:, None, None], x_prev), v_next.nan_to_num(), action, solver.compile
+            scene,
+            x_next.where(finite[:, None, None], x_prev),
+            v_next.nan_to_num(),
+            action,
+            solver.compile,
+            terms,
         )
         allowance = (
             explicit.ENERGY_GAIN_LIMIT * motion_before
@@ -389,7 +434,7 @@ def _explicit_step(
             float(energy_before[entry]),
             float(energy_after[entry]) if bool(finite[entry]) else math.nan,
         )
-        _raise_unstable(scene, x_prev, action, energies, entry)
+        _raise_unstable(scene, terms, x_prev, action, energies, entry)
     stats = SolverResult(
         x=x_next.detach(),
         iterations=0,
@@ -404,28 +449,61 @@ def _explicit_step(
     return x_next, v_next, stats
 
 
+def _stable_limits(
+    scene: Scene, terms: list[EnergyTerm], x: Tensor, action: Tensor | None
+) -> tuple[float, float]:
+    """At positions `x` `[1, n, d]`: the Courant limit 2/ω_max over the force `terms`
+    (`explicit.stable_step`) and the viscous kick's limit 1/γ_max (`explicit.stable_damping_step`),
+    in s (inf where there is none)."""
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass, action)
+    courant = explicit.stable_step(objective.hessian(x), scene.vertex_mass, scene.free, x)
+    dissipative = [term for term in terms if explicit.is_dissipative(term)]
+    return courant, explicit.stable_damping_step(dissipative, x, scene.vertex_mass, scene.free)
+
+
 def _raise_unstable(
-    scene: Scene, x_prev: Tensor, action: Tensor | None, energies: tuple[float, float], entry: int
+    scene: Scene,
+    terms: list[EnergyTerm],
+    x_prev: Tensor,
+    action: Tensor | None,
+    energies: tuple[float, float],
+    entry: int,
 ) -> None:
     """Raise `InstabilityError` for batch entry `entry`, with its energies at the step's start and end
-    (J) and its Courant limit."""
+    (J) and its stable step over `terms` (the force terms: contact acts by projection)."""
     rows = slice(entry, entry + 1)
     act = None if action is None else action[rows].detach()
-    objective = Objective(list(scene.terms), scene.free, scene.dt / scene.vertex_mass, act)
-    x_start = x_prev[rows].detach()
-    limit = explicit.stable_step(objective.hessian(x_start), scene.vertex_mass, scene.free, x_start)
+    courant, damping = _stable_limits(scene, terms, x_prev[rows].detach(), act)
+    limit = min(courant, damping)
     h = scene.dt / scene.substeps
     if math.isfinite(limit):
         substeps = math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))
         advice = f"at least {substeps} substeps of dt = {scene.dt:.4g} s"
     else:
         advice = "a smaller step"
+    viscous = f" and its viscous limit 1/γ_max = {damping:.4g} s" if math.isfinite(damping) else ""
     raise explicit.InstabilityError(
         f"the leapfrog step blew up: h = {h:.4g} s ({scene.substeps} substeps of dt = {scene.dt:.4g} s); "
         f"batch entry {entry}'s energy went from {energies[0]:.6g} J to {energies[1]:.6g} J in one "
-        f"step. Its Courant limit at the step's start is about 2/ω_max = {limit:.4g} s (ω_max² the "
-        f"largest eigenvalue of M⁻¹H): use {advice}, or an implicit integrator"
+        f"step. Its Courant limit at the step's start is about 2/ω_max = {courant:.4g} s (ω_max² the "
+        f"largest eigenvalue of M⁻¹H){viscous}: use {advice}, or an implicit integrator"
     )
+
+
+def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None = None) -> int:
+    """The leapfrog substeps per `scene.dt` that keep h below `COURANT_SAFETY` of the stable step,
+    estimated at positions `x` `[n, d]` (default the rest shape): the Courant limit 2/ω_max, by
+    power iteration on M⁻¹H over the scene's force terms (obstacles act by projection,
+    `energysim.explicit`), and with viscosity the damping limit 1/γ_max (`stable_damping_step`).
+
+    A body stiffens as it deforms, so this is where to start, not a guarantee: a step that blows up
+    still raises `InstabilityError`. The shipped worm at rest: 2/ω_max = 0.71 ms, 32 substeps of
+    1/60 s (with η = 30 Pa·s its viscous limit 1/γ_max is 0.70 ms: still 32)."""
+    terms, _ = explicit.split_terms(list(scene.terms))
+    x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
+    act = None if action is None else _check_action(action, 1)
+    limit = min(_stable_limits(scene, terms, x, act))
+    return max(1, math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))) if math.isfinite(limit) else 1
 
 
 def step(
@@ -444,8 +522,10 @@ def step(
 
     "leapfrog": `scene.substeps` explicit position-Verlet substeps of h/substeps (`energysim.explicit`):
     second order and symplectic, one gradient per substep and no solve, stable only below the
-    Courant limit h ω_max < 2, and for scenes without contact. A step that blew up raises
-    `InstabilityError` with the limit's estimate. The solver only says whether to compile.
+    Courant limit h ω_max < 2. Half-space and sphere obstacles act after every kick as an inelastic
+    contact with Coulomb friction (`Obstacle.contact_velocity`); other contact is refused. A step
+    that blew up raises `InstabilityError` with the limit's estimate. The solver only says whether
+    to compile.
 
     "tr_bdf2": the composite trapezoidal / three-point backward-difference step with γ = ½
     (Bank et al. 1985; Bathe & Baig 2005), second order and L-stable: slow motion keeps its

@@ -186,6 +186,32 @@ class Obstacle(ElementEnergy):
         limit = (CCD_SAFETY * impact.amin(dim=-1)).clamp(max=1.0)
         return torch.where(inside, torch.full_like(limit, torch.nan), limit)
 
+    def contact_velocity(self, x: Tensor, v: Tensor, horizon: float | Tensor) -> Tensor:
+        """The velocities `[B, n, d]` after an inelastic contact with Coulomb friction, for an explicit
+        step whose next `horizon` seconds move every vertex from `x` with `v` (both `[B, n, d]`).
+
+        Per colliding vertex, with d its signed distance and n = ∇d at `x`: where d + horizon·n·v
+        would be negative, the normal velocity rises to −d/horizon, so that the vertex ends the
+        horizon on the tangent plane (outside a convex obstacle, which lies behind each of its
+        tangent planes). That rise Δ is the normal impulse per unit mass, and friction takes up to
+        μΔ off the tangential velocity: all of it where that is enough (sticking), μΔ along it
+        otherwise (sliding). This is the closed-form minimiser of ½m‖v′ − v‖² + μmΔ‖v′_t‖ subject
+        to d + horizon·n·v′ ≥ 0, the limit of the barrier and IPC's friction as d̂ and ε_v go to 0,
+        and per vertex because the mass matrix is diagonal. Other vertices keep `v`.
+        """
+        points = self._vertex_positions(x)
+        velocity = self._vertex_positions(v)
+        distance, normal, _ = self.distance_derivatives(points)
+        normal_speed = (velocity * normal).sum(dim=-1)
+        impulse = (-distance / horizon - normal_speed).clamp_min(0.0)
+        tangential = velocity - normal_speed[..., None] * normal
+        _, slip = _safe_norm(tangential)
+        kept = (1.0 - self.friction.to(v.dtype) * impulse / slip).clamp_min(0.0)
+        projected = kept[..., None] * tangential + (normal_speed + impulse)[..., None] * normal
+        if self._vertices is None:
+            return projected
+        return v.index_copy(1, self.element_vertices[:, 0], projected)
+
     def normal_force(self, x: Tensor) -> Tensor:
         """Magnitude of the barrier's force on each colliding vertex, shape `[B, m]`, in N."""
         return self._normal_force(self.signed_distance(self._vertex_positions(x)))
@@ -218,6 +244,15 @@ class Obstacle(ElementEnergy):
                 self.friction_smoothing * dt,
             )
         ]
+
+
+def project_contacts(
+    obstacles: Sequence[Obstacle], free: Tensor, x: Tensor, v: Tensor, horizon: float | Tensor
+) -> Tensor:
+    """`v` `[B, n, d]` after each obstacle's `contact_velocity` in turn, zero on pinned vertices."""
+    for obstacle in obstacles:
+        v = obstacle.contact_velocity(x, v, horizon)
+    return v * free[:, None].to(v.dtype)
 
 
 def _unit_vector(value: Sequence[float] | Tensor, name: str) -> Tensor:

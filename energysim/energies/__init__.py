@@ -7,6 +7,17 @@ from energysim.energies.inertia import Inertia
 from energysim.energies.muscles import ActuatedSprings
 from energysim.energies.neo_hookean import NeoHookean
 from energysim.energies.springs import Springs
+from energysim.energies.viscosity import LaggedViscosity, Viscosity
 
-__all__ = ["ActuatedSprings", "ElementEnergy",
-    "FibreMuscles", "EnergyTerm", "Gravity", "Inertia", "NeoHookean", "Springs"]
+__all__ = [
+    "ActuatedSprings",
+    "ElementEnergy",
+    "EnergyTerm",
+    "FibreMuscles",
+    "Gravity",
+    "Inertia",
+    "LaggedViscosity",
+    "NeoHookean",
+    "Springs",
+    "Viscosity",
+]

@@ -166,9 +166,24 @@ class FibreMuscles(ElementEnergy):
         """λ* = 1 − c·clamp(a, −1, 1) per actuated element, shape `[B, m_active]` (a 0-d 1 without action)."""
         if action is None:
             return self.rest_volume.new_ones(())
-        return contraction(
-            action, self.element_actuator, self.max_contraction, self.num_actuators, "muscles"
-        )
+        return contraction(action, self.element_actuator, self.max_contraction, self.num_actuators, "muscles")
+
+    def batch_last_forces(self, corners: list[list[Tensor]], action: Tensor | None) -> list[list[Tensor]]:
+        """∂E/∂x entry by entry with the batch innermost (see `NeoHookean.batch_last_forces`):
+        `corners[i][b]` `[m_active, B]` in m, `action` transposed `[a, B]` or None; returns
+        ∂E/∂x_bi `[m_active, B]` in N. A spring's force along the fibre vector f = F m = Σ_b w_b x_b:
+        V k (‖f‖ − λ*) f/‖f‖, shared among the corners by their weights w_b."""
+        dim = len(corners)
+        weight = [self.fibre_weights[:, b][:, None] for b in range(dim + 1)]
+        fibre = [sum(weight[b] * corners[i][b] for b in range(dim + 1)) for i in range(dim)]
+        stretch = torch.sqrt(sum(component * component for component in fibre) + 1e-30)
+        if action is None:
+            target = stretch.new_ones(())
+        else:
+            target = 1.0 - self.max_contraction * action[self.element_actuator].clamp(-1.0, 1.0)
+        stiffness = self.element_stiffness() * self.rest_volume
+        tension = (stiffness[:, None] if stiffness.ndim else stiffness) * (stretch - target) / stretch
+        return [[tension * fibre[i] * weight[b] for b in range(dim + 1)] for i in range(dim)]
 
     def fibre_stretch(self, x: Tensor) -> Tensor:
         """‖F m‖ of every actuated element at positions `x` `[B, n, d]`, shape `[B, m_active]`."""

@@ -137,6 +137,51 @@ def stable_neo_hookean_stress(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     return along_f[..., None, None] * F + along_cofactor[..., None, None] * cofactor
 
 
+def stable_neo_hookean_stress_entries(F: list[list[Tensor]], mu: Tensor, lam: Tensor) -> list[list[Tensor]]:
+    """`stable_neo_hookean_stress` with F and P given entry by entry: `F[i][j]` are tensors of one
+    shape `[...]`, and so are the returned `P[i][j]`, in Pa.
+
+    The same formulas, written as scalar expressions: compiled, they fuse into one loop over the
+    entries' elements, where the matrix form's reductions over the last axes and stacks each end a
+    loop and store their intermediates (`energysim.compiled`'s batch-last leapfrog, 2.5 → 1.3 ms a
+    substep for 64 worms). The tests check the two forms agree.
+
+    Args:
+        F: d × d nested lists, d = 2 (plane strain) or 3; mu, lam: Pa, broadcastable to `[...]`.
+    """
+    dim = len(F)
+    mu_smith, lam_smith, _ = smith_parameters(mu, lam)
+    # in G = F − I, as `_invariant_excesses`, so that nothing loses digits near F = I
+    G = [[F[i][j] - 1.0 if i == j else F[i][j] for j in range(dim)] for i in range(dim)]
+    trace = sum(G[i][i] for i in range(dim))
+    squares = 0.5 * sum(G[i][j] * G[i][j] for i in range(dim) for j in range(dim))
+    if dim == 2:
+        higher = G[0][0] * G[1][1] - G[0][1] * G[1][0]
+        cofactor = [[F[1][1], -F[1][0]], [-F[0][1], F[0][0]]]
+    else:
+        determinant = (
+            G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1])
+            - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0])
+            + G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0])
+        )
+        higher = (
+            0.5 * (trace * trace - sum(G[i][j] * G[j][i] for i in range(3) for j in range(3))) + determinant
+        )
+        # cof F_ij = (−1)^(i+j) times the minor: cyclic in 3D
+        cofactor = [
+            [
+                F[(i + 1) % 3][(j + 1) % 3] * F[(i + 2) % 3][(j + 2) % 3]
+                - F[(i + 1) % 3][(j + 2) % 3] * F[(i + 2) % 3][(j + 1) % 3]
+                for j in range(3)
+            ]
+            for i in range(3)
+        ]
+    y = 0.5 * (trace + squares)  # (I_C − 3)/4
+    along_f = 0.75 * mu_smith + 0.25 * mu_smith * y / (1.0 + y)
+    along_cofactor = lam_smith * (trace + higher) - 0.75 * mu_smith
+    return [[along_f * F[i][j] + along_cofactor * cofactor[i][j] for j in range(dim)] for i in range(dim)]
+
+
 def stable_neo_hookean_density_and_stress(F: Tensor, mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
     """`stable_neo_hookean_density` and `stable_neo_hookean_stress` in one pass over the invariants,
     which both need: the solvers ask for energy and gradient together at every iterate.
