@@ -504,7 +504,7 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
         sys.path.remove(str(ROOT / "scripts"))
     rows = bench_env.main(
         ["--creatures", "crawler2d", "--batch-sizes", "1", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
-        + ["--device", "cpu", "--out", str(tmp_path)]
+        + ["--device", "cpu", "--out", str(tmp_path), "--no-gait"]
     )
     assert [row.batch for row in rows] == [1, 2]
     for row in rows:
@@ -516,8 +516,54 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
     # the activation time constant reaches the env and is recorded in both files
     rows = bench_env.main(
         ["--creatures", "crawler2d", "--batch-sizes", "1", "--steps", "1", "--warmup", "0", "--no-plot"]
-        + ["--device", "cpu", "--out", str(tmp_path), "--activation-time-constant", "0.05"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--activation-time-constant", "0.05", "--no-gait"]
     )
     assert rows[0].activation_time_constant == 0.05
     assert "τ = 0.05 s" in (tmp_path / "bench_env.md").read_text()
     assert "activation_time_constant" in (tmp_path / "bench_env.csv").read_text().splitlines()[0]
+
+
+def test_bench_env_times_the_leapfrog_env_with_its_gait_error(tmp_path: Path) -> None:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import bench_env
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    rows = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "leapfrog", "--gait-seconds", "0.1"]
+    )
+    (row,) = rows
+    assert row.integrator == "leapfrog" and row.substeps > 1 and row.activation_time_constant == 0.05
+    # the reference is the same model at 4× the substeps: close, but not the same numbers
+    assert 0 < row.gait_distance_error < 1e-3
+    table = (tmp_path / "bench_env.md").read_text()
+    assert "explicit leapfrog substeps" in table and "gait error" in table
+
+
+@pytest.mark.parametrize("creature", ["worm", "crawler2d"])
+def test_leapfrog_envs_pass_the_checker_and_batch_exactly(creature: str) -> None:
+    # the explicit env: substeps from the Courant limit at rest, τ = 0.05 s by default
+    env = gymnasium.make(envs.ENV_IDS[creature], integrator="leapfrog")
+    config = env.unwrapped.config
+    assert config.time_constant == envs.core.LEAPFROG_ACTIVATION_TIME_CONSTANT
+    if creature == "worm":
+        # at rest 2/ω_max = 0.71 ms and, with η = 30 Pa·s, 1/γ_max = 0.70 ms
+        assert env.unwrapped.simulation.scene.substeps == 32
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warnings.filterwarnings("ignore", message=".*Box observation space m.*infinity")
+        check_env(env.unwrapped)
+    assert_batched_equals_single(creature, batch=3, steps=3, integrator="leapfrog")
+
+
+def test_leapfrog_env_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="integrator must be one of"):
+        envs.CreatureEnvConfig(integrator="rk4")
+    with pytest.raises(ValueError, match="substeps = 8 is for integrator='leapfrog'"):
+        envs.CreatureEnvConfig(substeps=8)
+    with pytest.raises(ValueError, match="substeps must be an integer >= 1"):
+        envs.CreatureEnvConfig(integrator="leapfrog", substeps=0)
+    # τ = 0 keeps instant activations on the explicit env too
+    assert envs.CreatureEnvConfig(integrator="leapfrog", activation_time_constant=0.0).time_constant == 0.0
+    assert envs.CreatureEnvConfig().time_constant == 0.0

@@ -67,8 +67,12 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         max_episode_steps: truncate after this many env steps; None: never (`gymnasium.make`
             truncates through the registration's `TimeLimit` instead).
         num_markers: marker vertices in the observation.
-        activation_time_constant: τ in s of the activation dynamics; None or 0: none, the action is
-            the activation (see `CreatureEnvConfig`).
+        activation_time_constant: τ in s of the activation dynamics; 0: none, the action is the
+            activation; None: none, or 0.05 s with "leapfrog" (see `CreatureEnvConfig`).
+        integrator: "implicit_euler" (default), "tr_bdf2" or "leapfrog" (explicit substeps, fast in
+            batches with `solver_compile`; see `CreatureEnvConfig`).
+        substeps: leapfrog substeps per physics step; None: from the Courant limit at rest.
+        viscosity: the body's Kelvin–Voigt viscosity η in Pa·s; None: 0, or 30 with "leapfrog".
         render_mode: None or "rgb_array" (a side view, see `SideViewRenderer`).
         device, dtype: where and in which precision the simulation runs.
 
@@ -98,6 +102,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         max_episode_steps: int | None = None,
         num_markers: int = 12,
         activation_time_constant: float | None = None,
+        integrator: str = "implicit_euler",
+        substeps: int | None = None,
+        viscosity: float | None = None,
         render_mode: str | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
@@ -116,6 +123,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,
             activation_time_constant=activation_time_constant,
+            integrator=integrator,
+            substeps=substeps,
+            viscosity=viscosity,
         )
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(

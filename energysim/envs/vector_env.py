@@ -75,6 +75,9 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         max_episode_steps: int | None = None,
         num_markers: int = 12,
         activation_time_constant: float | None = None,
+        integrator: str = "implicit_euler",
+        substeps: int | None = None,
+        viscosity: float | None = None,
         render_mode: str | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
@@ -99,6 +102,9 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,
             activation_time_constant=activation_time_constant,
+            integrator=integrator,
+            substeps=substeps,
+            viscosity=viscosity,
         )
         self.simulation = CreatureSimulation(self.config, device=device, dtype=dtype)
         self.num_envs = int(num_envs)
