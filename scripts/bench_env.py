@@ -10,13 +10,22 @@ the env's first-order activation dynamics, which low-pass the random commands be
 them. `--compile` evaluates the step objective by compiled functions (`solver_compile=True`); its
 compilation happens in the untimed warm-up steps, so give it a few (`--warmup 10`). Runs use
 `--threads` intra-op threads (default 1, best for meshes this small on a shared
-machine).
+machine). `--integrator leapfrog` steps the env's explicit physics (`CreatureEnvConfig`: substeps
+from the Courant limit, the ground as an inelastic contact with Coulomb friction, τ = 0.05 s).
+
+Every speed comes with an error: the suggested open-loop gait (the creature's sine, through the
+same activation dynamics) is walked for 2 s by one env of the benchmarked configuration and by a
+reference of the same model four times finer in time (the implicit step at h/4 with frame_skip 4;
+the leapfrog at 4× the substeps). The table gives the reference's forward distance of the centre of
+mass and the configuration's error against it.
 
 Run:  python scripts/bench_env.py                                    # worm and quadruped, B = 1, 16, 64
       python scripts/bench_env.py --creatures worm --batch-sizes 1 4 --steps 3 --no-plot   # quick
       python scripts/bench_env.py --profile                          # also where the time goes
       python scripts/bench_env.py --activation-time-constant 0.05    # muscles with τ = 50 ms
       python scripts/bench_env.py --compile --warmup 10 --out docs/benchmarks/bench_env_compiled
+      python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 20 \
+          --out docs/benchmarks/bench_env_leapfrog                   # the explicit env
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
 """
 
@@ -24,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import io
 import pstats
 import statistics
@@ -37,7 +47,7 @@ from _common import save_figure, write_table_files
 
 from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES
-from energysim.envs import CreatureVectorEnv
+from energysim.envs import CreatureEnv, CreatureVectorEnv
 
 # the rate the project aims at: the batched worm at B = 64 on 2 CPU cores
 TARGET_STEPS_PER_SECOND = 1000.0
@@ -60,6 +70,11 @@ class Row:
     failures: int
     activation_time_constant: float | None = None
     compiled: bool = False
+    integrator: str = "implicit_euler"
+    substeps: int = 1
+    gait_seconds: float = float("nan")
+    gait_distance_reference: float = float("nan")
+    gait_distance_error: float = float("nan")
 
 
 def quartiles(values: list[float]) -> tuple[float, float, float]:
@@ -79,10 +94,12 @@ def bench(
     profile: bool,
     activation_time_constant: float | None = None,
     compile_objective: bool = False,
+    integrator: str = "implicit_euler",
 ) -> Row:
     """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
-    constant `activation_time_constant` in s, None: off; compiled objective evaluations with
-    `compile_objective`); one table row."""
+    constant `activation_time_constant` in s, None: the env's default; compiled objective
+    evaluations with `compile_objective`; the env's `integrator`); one table row, without the
+    gait's error (`gait_error`)."""
     env = CreatureVectorEnv(
         batch,
         creature,
@@ -91,6 +108,7 @@ def bench(
         device=device,
         activation_time_constant=activation_time_constant,
         solver_compile=compile_objective,
+        integrator=integrator,
     )
     env.reset(seed=0)
     env.action_space.seed(0)
@@ -132,8 +150,53 @@ def bench(
         env_steps_per_second_high=batch / low,
         newton_iterations=statistics.fmean(iterations) if iterations else float("nan"),
         failures=failures,
-        activation_time_constant=activation_time_constant,
+        activation_time_constant=env.config.time_constant,
         compiled=compile_objective,
+        integrator=integrator,
+        substeps=env.simulation.scene.substeps,
+    )
+
+
+GAIT_SECONDS = 2.0
+
+
+def gait_distance(
+    creature: str, options: dict, device: str, seconds: float, dt: float = 1 / 60, frame_skip: int = 1
+) -> float:
+    """Forward distance (m) of the centre of mass after `seconds` of the creature's suggested gait,
+    sampled at every env step of frame_skip·dt, in one `CreatureEnv` with `options`."""
+    env = CreatureEnv(creature, dt=dt, frame_skip=frame_skip, device=device, reset_noise_scale=0.0, **options)
+    _, info = env.reset(seed=0)
+    start = info["x_position"]
+    creature_data = env.simulation.creature
+    frame = dt * frame_skip
+    for k in range(round(seconds / frame)):
+        action = creature_data.gait_action(k * frame).numpy().astype(np.float32)
+        _, _, terminated, _, info = env.step(action)
+        if terminated:
+            return float("nan")
+    return info["x_position"] - start
+
+
+def gait_error(row: Row, device: str, seconds: float = GAIT_SECONDS) -> Row:
+    """`row` with its gait's reference distance and error: the same model four times finer in time."""
+    options = {
+        "activation_time_constant": row.activation_time_constant,
+        "integrator": row.integrator,
+        "solver_compile": row.compiled,
+    }
+    if row.integrator == "leapfrog":
+        measured = gait_distance(row.creature, {**options, "substeps": row.substeps}, device, seconds)
+        reference = gait_distance(row.creature, {**options, "substeps": 4 * row.substeps}, device, seconds)
+    else:
+        measured = gait_distance(row.creature, options, device, seconds)
+        reference = gait_distance(row.creature, options, device, seconds, dt=1 / 240, frame_skip=4)
+    print(f"{row.creature} gait: {measured:.5f} m in {seconds:g} s, reference {reference:.5f} m")
+    return dataclasses.replace(
+        row,
+        gait_seconds=seconds,
+        gait_distance_reference=reference,
+        gait_distance_error=abs(measured - reference),
     )
 
 
@@ -147,24 +210,38 @@ def activation_text(time_constant: float | None) -> str:
 def markdown(rows: list[Row], threads: int) -> str:
     """The results as a markdown table."""
     dynamics = activation_text(rows[0].activation_time_constant)
-    evaluations = "compiled objective evaluations" if rows[0].compiled else "eager evaluations"
+    evaluations = "compiled evaluations" if rows[0].compiled else "eager evaluations"
+    if rows[0].integrator == "leapfrog":
+        physics = (
+            "explicit leapfrog substeps (the ground an inelastic contact with Coulomb friction), "
+            f"{evaluations}"
+        )
+        work = "substeps/step"
+    else:
+        physics = (
+            f"{rows[0].integrator}, Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted), {evaluations}"
+        )
+        work = "Newton iterations/step"
     lines = [
         "Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, float64, "
-        f"Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted), {evaluations}, random actions (seed 0), "
-        f"{dynamics}, "
+        f"{physics}, random actions (seed 0), {dynamics}, "
         f"{threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
-        "range. Newton iterations: per physics step, the batched solve's count (its slowest entry).",
+        "range. Newton iterations: per physics step, the batched solve's count (its slowest entry). "
+        f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
+        "model four times finer in time (the reference's distance beside it).",
         "",
-        "| creature | B | calls | median ms/call (IQR) | env steps/s (IQR range) | Newton iterations/step "
-        "| failures |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        f"| creature | B | calls | median ms/call (IQR) | env steps/s (IQR range) | {work} | failures "
+        "| gait distance, reference (m) | gait error (m) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        effort = f"{r.substeps}" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f}"
         lines.append(
             f"| {r.creature} | {r.batch} | {r.steps} | {r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f}) | "
             f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–"
-            f"{r.env_steps_per_second_high:.1f}) | {r.newton_iterations:.1f} | {r.failures} |"
+            f"{r.env_steps_per_second_high:.1f}) | {effort} | {r.failures} | "
+            f"{r.gait_distance_reference:.4f} | {r.gait_distance_error:.1e} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -218,6 +295,16 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument(
         "--compile", action="store_true", help="compiled objective evaluations (compile in --warmup)"
     )
+    parser.add_argument(
+        "--integrator",
+        default="implicit_euler",
+        choices=["implicit_euler", "leapfrog"],
+        help="the env's integrator (leapfrog: explicit substeps, use with --compile)",
+    )
+    parser.add_argument("--no-gait", action="store_true", help="skip the gait's error (the slow part)")
+    parser.add_argument(
+        "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
+    )
     parser.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
@@ -228,10 +315,37 @@ def main(argv: list[str] | None = None) -> list[Row]:
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
     configure_cpu(args.threads)
     rows = [
-        bench(creature, batch, args.steps, args.warmup, args.device, args.profile, tau, args.compile)
+        bench(
+            creature,
+            batch,
+            args.steps,
+            args.warmup,
+            args.device,
+            args.profile,
+            tau,
+            args.compile,
+            args.integrator,
+        )
         for creature in args.creatures
         for batch in args.batch_sizes
     ]
+    if not args.no_gait:
+        # one gait per creature: the physics does not depend on B
+        errors = {
+            creature: gait_error(
+                next(r for r in rows if r.creature == creature), args.device, args.gait_seconds
+            )
+            for creature in args.creatures
+        }
+        rows = [
+            dataclasses.replace(
+                r,
+                gait_seconds=args.gait_seconds,
+                gait_distance_reference=errors[r.creature].gait_distance_reference,
+                gait_distance_error=errors[r.creature].gait_distance_error,
+            )
+            for r in rows
+        ]
     table = markdown(rows, args.threads)
     print(table)
     write_table_files(args.out, "bench_env", rows, table)
