@@ -13,6 +13,7 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -496,12 +497,18 @@ def test_bad_arguments_raise_clear_errors() -> None:
         vector.reset(seed=[1, 2, 3])
 
 
-def test_bench_env_writes_its_table(tmp_path: Path) -> None:
+def bench_env_script() -> Any:
+    """scripts/bench_env.py as a module."""
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
         import bench_env
     finally:
         sys.path.remove(str(ROOT / "scripts"))
+    return bench_env
+
+
+def test_bench_env_writes_its_table(tmp_path: Path) -> None:
+    bench_env = bench_env_script()
     rows = bench_env.main(
         ["--creatures", "crawler2d", "--batch-sizes", "1", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
         + ["--device", "cpu", "--out", str(tmp_path), "--no-gait"]
@@ -524,11 +531,7 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
 
 
 def test_bench_env_times_the_leapfrog_env_with_its_gait_error(tmp_path: Path) -> None:
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import bench_env
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
+    bench_env = bench_env_script()
     rows = bench_env.main(
         ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
         + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "leapfrog", "--gait-seconds", "0.1"]
