@@ -201,8 +201,8 @@ def _kick_batch_last(
     # and scatters move rows of B contiguous numbers, and every element kernel (`batch_last_forces`)
     # is one loop vectorised over the batch, the terms of a group sharing one gather and one
     # scatter. Terms outside `groups` (gravity) give their gradient in the usual layout. With a
-    # `drift`, the contact projection and the drift follow (`_finish_batch_last`); without, the
-    # viscous kick comes first (`_viscous_kick_batch_last`).
+    # `drift`, the contact projection and the drift follow (`_finish_batch_last`); without one, the
+    # caller's viscous kick does them (`_viscous_kick_batch_last`).
     dofs, batch = x.shape
     n, dim = inverse_mass.shape[0], dofs // inverse_mass.shape[0]
     action_t = None if action is None else action.T

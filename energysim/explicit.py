@@ -109,7 +109,7 @@ def check_start(obstacles: Sequence[Obstacle], x: Tensor) -> None:
     """Raise ValueError naming the vertices that start a step inside an obstacle (deeper than
     `START_DEPTH_TOLERANCE` × its d̂)."""
     for obstacle in obstacles:
-        distance = obstacle.signed_distance(obstacle._vertex_positions(x.detach()))
+        distance = obstacle.signed_distance(x.detach()[:, obstacle.element_vertices[:, 0]])
         inside = (distance < -START_DEPTH_TOLERANCE * obstacle.barrier_distance).any(dim=0)
         if bool(inside.any()):
             index = obstacle.element_vertices[inside, 0]
@@ -133,11 +133,10 @@ def leapfrog(
 
     `damping(x, v)`, if given, is the viscous acceleration −M⁻¹∂D/∂v (`is_dissipative`), taken
     right after the elastic kick at the velocity it left: a splitting, first order in the damping
-    as any explicit damping is, which keeps the viscous kernels from competing with the elastic
-    ones for the same loop when compiled. `contact(x, v, horizon)`, if given, then projects the
-    velocities, for the whole step h that they drive (the half drift that ends this substep and
-    the one that starts the next), and once before the first half drift, so that every position
-    stays outside."""
+    as any explicit damping is (compiled batches run the two kicks as two calls, in this order).
+    `contact(x, v, horizon)`, if given, then projects the velocities, for the whole step h that
+    they drive (the half drift that ends this substep and the one that starts the next), and once
+    before the first half drift, so that every position stays outside."""
     if contact is not None:
         v = contact(x, v, 0.5 * h)
     for _ in range(substeps):
