@@ -90,6 +90,9 @@ class Task:
         solver_tol: the env's Newton–CG velocity-residual tolerance in m/s.
         solver_compile: the env evaluates its step objective by compiled functions
             (`CreatureEnvConfig.solver_compile`): faster steps after a compilation of 15 s to a minute.
+        integrator: the env's physics, "implicit_euler" or "leapfrog" (`CreatureEnvConfig`). Either
+            way the env itself filters no activation: the controllers do (PPO's `--action-tau`,
+            the gradient method's smooth gaits), as they did before the envs could.
     """
 
     creature: str = "worm"
@@ -97,6 +100,7 @@ class Task:
     frame_skip: int = 1
     solver_tol: float = 1e-4
     solver_compile: bool = False
+    integrator: str = "implicit_euler"
 
     def __post_init__(self) -> None:
         from energysim.creatures import CREATURES
@@ -108,6 +112,8 @@ class Task:
         check_number(self.solver_tol, "solver_tol", 0.0, strict=True)
         if not isinstance(self.solver_compile, bool):
             raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
+        if self.integrator not in ("implicit_euler", "leapfrog"):
+            raise ValueError(f"integrator must be 'implicit_euler' or 'leapfrog', got {self.integrator!r}")
 
     def vector_env(self, num_envs: int) -> Any:
         """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
@@ -120,6 +126,8 @@ class Task:
             solver_tol=self.solver_tol,
             solver_compile=self.solver_compile,
             max_episode_steps=self.episode_steps,
+            integrator=self.integrator,
+            activation_time_constant=0.0,
         )
 
     def simulation(self) -> Any:
@@ -132,6 +140,8 @@ class Task:
             solver_tol=self.solver_tol,
             solver_compile=self.solver_compile,
             max_episode_steps=self.episode_steps,
+            integrator=self.integrator,
+            activation_time_constant=0.0,
         )
         return CreatureSimulation(config)
 
@@ -630,6 +640,12 @@ def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method:
         "--compile",
         action="store_true",
         help="compiled physics evaluations: faster env steps after 15 s to a minute of compiling",
+    )
+    add(
+        "--integrator",
+        default="implicit_euler",
+        choices=["implicit_euler", "leapfrog"],
+        help="the env's physics (leapfrog: explicit substeps with viscosity, fast with --compile)",
     )
     add("--out", type=Path, default=Path("out") / f"train_{method}", help="output folder")
     add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")

@@ -17,15 +17,17 @@ Every speed comes with an error: the suggested open-loop gait (the creature's si
 same activation dynamics) is walked for 2 s by one env of the benchmarked configuration and by a
 reference of the same model four times finer in time (the implicit step at h/4 with frame_skip 4;
 the leapfrog at 4× the substeps). The table gives the reference's forward distance of the centre of
-mass and the configuration's error against it.
+mass and the configuration's error against it (the reference in float64 also for `--dtype float32`).
 
 Run:  python scripts/bench_env.py                                    # worm and quadruped, B = 1, 16, 64
       python scripts/bench_env.py --creatures worm --batch-sizes 1 4 --steps 3 --no-plot   # quick
       python scripts/bench_env.py --profile                          # also where the time goes
       python scripts/bench_env.py --activation-time-constant 0.05    # muscles with τ = 50 ms
       python scripts/bench_env.py --compile --warmup 10 --out docs/benchmarks/bench_env_compiled
-      python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 20 \
+      python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
           --out docs/benchmarks/bench_env_leapfrog                   # the explicit env
+      python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
+          --dtype float32 --out docs/benchmarks/bench_env_leapfrog_float32
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
 """
 
@@ -72,6 +74,7 @@ class Row:
     compiled: bool = False
     integrator: str = "implicit_euler"
     substeps: int = 1
+    dtype: str = "float64"
     gait_seconds: float = float("nan")
     gait_distance_reference: float = float("nan")
     gait_distance_error: float = float("nan")
@@ -95,6 +98,7 @@ def bench(
     activation_time_constant: float | None = None,
     compile_objective: bool = False,
     integrator: str = "implicit_euler",
+    dtype: str = "float64",
 ) -> Row:
     """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
     constant `activation_time_constant` in s, None: the env's default; compiled objective
@@ -109,6 +113,7 @@ def bench(
         activation_time_constant=activation_time_constant,
         solver_compile=compile_objective,
         integrator=integrator,
+        dtype=getattr(torch, dtype),
     )
     env.reset(seed=0)
     env.action_space.seed(0)
@@ -154,6 +159,7 @@ def bench(
         compiled=compile_objective,
         integrator=integrator,
         substeps=env.simulation.scene.substeps,
+        dtype=dtype,
     )
 
 
@@ -179,18 +185,21 @@ def gait_distance(
 
 
 def gait_error(row: Row, device: str, seconds: float = GAIT_SECONDS) -> Row:
-    """`row` with its gait's reference distance and error: the same model four times finer in time."""
+    """`row` with its gait's reference distance and error: the same model four times finer in time,
+    in float64 whatever the row's precision."""
     options = {
         "activation_time_constant": row.activation_time_constant,
         "integrator": row.integrator,
         "solver_compile": row.compiled,
+        "dtype": getattr(torch, row.dtype),
     }
+    exact = {**options, "dtype": torch.float64}
     if row.integrator == "leapfrog":
         measured = gait_distance(row.creature, {**options, "substeps": row.substeps}, device, seconds)
-        reference = gait_distance(row.creature, {**options, "substeps": 4 * row.substeps}, device, seconds)
+        reference = gait_distance(row.creature, {**exact, "substeps": 4 * row.substeps}, device, seconds)
     else:
         measured = gait_distance(row.creature, options, device, seconds)
-        reference = gait_distance(row.creature, options, device, seconds, dt=1 / 240, frame_skip=4)
+        reference = gait_distance(row.creature, exact, device, seconds, dt=1 / 240, frame_skip=4)
     print(f"{row.creature} gait: {measured:.5f} m in {seconds:g} s, reference {reference:.5f} m")
     return dataclasses.replace(
         row,
@@ -223,13 +232,13 @@ def markdown(rows: list[Row], threads: int) -> str:
         )
         work = "Newton iterations/step"
     lines = [
-        "Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, float64, "
+        f"Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, {rows[0].dtype}, "
         f"{physics}, random actions (seed 0), {dynamics}, "
         f"{threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
         "range. Newton iterations: per physics step, the batched solve's count (its slowest entry). "
         f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
-        "model four times finer in time (the reference's distance beside it).",
+        "model four times finer in time, in float64 (the reference's distance beside it).",
         "",
         f"| creature | B | calls | median ms/call (IQR) | env steps/s (IQR range) | {work} | failures "
         "| gait distance, reference (m) | gait error (m) |",
@@ -301,6 +310,9 @@ def main(argv: list[str] | None = None) -> list[Row]:
         choices=["implicit_euler", "leapfrog"],
         help="the env's integrator (leapfrog: explicit substeps, use with --compile)",
     )
+    parser.add_argument(
+        "--dtype", default="float64", choices=["float64", "float32"], help="the simulation's precision"
+    )
     parser.add_argument("--no-gait", action="store_true", help="skip the gait's error (the slow part)")
     parser.add_argument(
         "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
@@ -325,6 +337,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
             tau,
             args.compile,
             args.integrator,
+            args.dtype,
         )
         for creature in args.creatures
         for batch in args.batch_sizes

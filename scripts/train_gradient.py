@@ -150,9 +150,12 @@ class Settings:
     eval_episodes: int = 2
     solver_tol: float = 1e-4
     solver_compile: bool = False
+    integrator: str = "implicit_euler"
 
     def __post_init__(self) -> None:
-        Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)  # checks those
+        Task(
+            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+        )  # checks those
         check_integer(self.num_envs, "num_envs", 1)
         check_integer(self.total_steps, "total_steps", 0)
         check_integer(self.window, "window", 1)
@@ -167,7 +170,9 @@ class Settings:
 
     @property
     def task(self) -> Task:
-        return Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)
+        return Task(
+            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+        )
 
 
 def window_return(
@@ -390,6 +395,7 @@ def main(argv: list[str] | None = None) -> int:
         eval_episodes=args.eval_episodes,
         solver_tol=args.solver_tol,
         solver_compile=args.compile,
+        integrator=args.integrator,
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)

@@ -84,9 +84,12 @@ class Settings:
     eval_episodes: int = 2
     solver_tol: float = 1e-4
     solver_compile: bool = False
+    integrator: str = "implicit_euler"
 
     def __post_init__(self) -> None:
-        Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)  # checks those
+        Task(
+            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+        )  # checks those
         check_integer(self.num_envs, "num_envs", 1)
         check_integer(self.total_steps, "total_steps", 0)
         check_integer(self.n_steps, "n_steps", 1)
@@ -118,7 +121,9 @@ class Settings:
 
     @property
     def task(self) -> Task:
-        return Task(self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile)
+        return Task(
+            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+        )
 
 
 def vec_env(settings: Settings, num_envs: int) -> CreatureVecEnv:
@@ -310,6 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         eval_episodes=args.eval_episodes,
         solver_tol=args.solver_tol,
         solver_compile=args.compile,
+        integrator=args.integrator,
     )
     torch.set_num_threads(args.threads)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)

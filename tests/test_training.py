@@ -155,6 +155,8 @@ def test_bad_arguments_raise_clear_errors(tmp_path: Path) -> None:
         training.Task(solver_tol=0.0)
     with pytest.raises(ValueError, match="solver_compile must be True or False, got 1"):
         training.Task(solver_compile=1)
+    with pytest.raises(ValueError, match="integrator must be 'implicit_euler' or 'leapfrog', got 'rk4'"):
+        training.Task(integrator="rk4")
     with pytest.raises(ValueError, match=r"eval_every must be a multiple of num_envs × n_steps = 480"):
         train_ppo.Settings(eval_every=1000)
     with pytest.raises(ValueError, match="batch_size must be at most num_envs × n_steps = 8"):
@@ -316,3 +318,12 @@ def test_short_ppo_run_improves_on_the_random_and_the_initial_policy(tmp_path: P
     assert curve[-1].eval_distance > 0
     # far above the random policy's mean, though a deterministic policy that stood still would be too
     assert curve[-1].eval_return > _random_policy_expected_return(settings.task)
+
+
+def test_the_leapfrog_task_trains_on_the_explicit_env_without_its_activation_filter() -> None:
+    # the controllers filter (PPO's --action-tau) or are smooth, so the env's τ stays off, as on the
+    # implicit task; the explicit env's viscosity stays on
+    task = training.Task(episode_steps=2, integrator="leapfrog")
+    for simulation in (task.vector_env(2).simulation, task.simulation()):
+        assert simulation.scene.integrator == "leapfrog" and simulation.scene.substeps == 32
+        assert simulation.config.time_constant == 0.0 and simulation.config.body_viscosity == 30.0
