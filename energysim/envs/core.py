@@ -33,17 +33,19 @@ from energysim.optim import ConvergenceError, NewtonCG
 from energysim.scene import INTEGRATORS
 from energysim.step import stable_substeps, step
 
-# τ of the activation dynamics the explicit integrator gets by default: an undamped elastic body
-# takes in energy at every jump of its muscles' rest lengths, and only the ground's friction takes
-# it out. With instant random activations the leapfrog worm gained about 3 J a step (its weight
-# is 0.48 kg) until it blew up within 90 steps even at 64 substeps; through τ = 0.05 s its kinetic
-# energy levelled off near 2 J, and 64 worms ran 300 steps at 32 substeps without a failure.
+# τ of the activation dynamics the explicit integrator gets by default: an elastic body takes in
+# energy at every jump of its muscles' rest lengths. With instant random activations and no
+# viscosity the leapfrog worm gained about 3 J a step (its weight is 0.48 kg) until it blew up
+# within 90 steps even at 64 substeps; with η = 30 Pa·s a jump of every muscle from rest still
+# blew up some of 64 worms in the first step at 32 substeps (the elements it squashes stiffen past
+# the step's limits). Through τ = 0.05 s, with that η, 64 worms ran 300 random-action steps at 32
+# substeps without a failure, their kinetic energy levelling off near 0.2 J.
 LEAPFROG_ACTIVATION_TIME_CONSTANT = 0.05
 # η in Pa·s of the Kelvin–Voigt viscosity (`energysim.energies.Viscosity`) the explicit integrator
 # gets by default: leapfrog keeps every elastic wave, so without it the worm rings and its gait is
 # chaotic (2 s of gait: 9.2, 11.3, 12.3 and 14.0 cm at 32, 64, 128 and 256 substeps). With 30 Pa·s
-# the same runs converge, 12.08, 12.15 and 12.18 cm at 32, 64 and 128 substeps; 100 Pa·s is past
-# the explicit kick's stable damping at 32 substeps.
+# the same runs converge, 12.40, 12.18, 12.21 and 12.22 cm; 100 Pa·s is past the viscous kick's
+# stable step at 32 substeps (`explicit.stable_damping_step`).
 LEAPFROG_VISCOSITY = 30.0
 
 logger = logging.getLogger(__name__)
