@@ -44,7 +44,7 @@ from energysim.banded import (
 from energysim.block_tridiagonal import LevelLayout
 from energysim.caching import IdentityCache
 from energysim.contact.obstacles import project_contacts
-from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, is_dissipative
 
 
 def has_closed_forms(terms: Sequence[EnergyTerm], *, hessian: bool) -> bool:
@@ -158,7 +158,7 @@ def _leapfrog(
         _, gradient = _energy_and_gradient(terms, None, action, free, x)
         v = v - h * gradient * inverse_mass[:, None]
         for term in terms:
-            if hasattr(term, "dissipation_gradient"):
+            if is_dissipative(term):
                 v = v - h * term.dissipation_gradient(x, v) * inverse_mass[:, None]
         if obstacles:
             v = project_contacts(obstacles, free, x, v, h)
@@ -166,13 +166,15 @@ def _leapfrog(
     return x, v
 
 
-def _batch_last_corners(term: EnergyTerm, values: Tensor, dim: int) -> tuple[Tensor, list[list[Tensor]]]:
-    # the element corners' DOF rows `[d, k, m]` of `values` `[n·d, B]`, and the gathered rows as
-    # corners[i][b] `[m, B]`
-    vertices = term.element_vertices.T
-    corner_dofs = vertices[None] * dim + torch.arange(dim, device=values.device)[:, None, None]
+def _corner_dofs(term: EnergyTerm, dim: int, device: torch.device) -> Tensor:
+    # the DOF rows `[d, k, m]` of the corners of `term`'s elements in a `[n·d, B]` state
+    return term.element_vertices.T[None] * dim + torch.arange(dim, device=device)[:, None, None]
+
+
+def _corners(values: Tensor, corner_dofs: Tensor) -> list[list[Tensor]]:
+    # rows `corner_dofs` of `values` `[n·d, B]` as corners[i][b] `[m, B]`
     gathered = values[corner_dofs]
-    return corner_dofs, [[gathered[i, b] for b in range(dim + 1)] for i in range(dim)]
+    return [[gathered[i, b] for b in range(gathered.shape[1])] for i in range(gathered.shape[0])]
 
 
 def _scatter_corners(
@@ -209,7 +211,8 @@ def _kick_batch_last(
     grouped = {index for group in groups for index in group}
     gradient = x.new_zeros(dofs, batch)
     for group in groups:
-        corner_dofs, corners = _batch_last_corners(terms[group[0]], x, dim)
+        corner_dofs = _corner_dofs(terms[group[0]], dim, x.device)
+        corners = _corners(x, corner_dofs)
         forces = [terms[index].batch_last_forces(corners, action_t) for index in group]
         gradient = _scatter_corners(gradient, corner_dofs, forces, dim)
     for index, term in enumerate(terms):
@@ -240,9 +243,8 @@ def _viscous_kick_batch_last(
     dim = dofs // inverse_mass.shape[0]
     gradient = x.new_zeros(dofs, batch)
     for term in terms:
-        corner_dofs, corners = _batch_last_corners(term, x, dim)
-        _, velocities = _batch_last_corners(term, v, dim)
-        forces = term.batch_last_dissipation_gradient(corners, velocities)
+        corner_dofs = _corner_dofs(term, dim, x.device)
+        forces = term.batch_last_dissipation_gradient(_corners(x, corner_dofs), _corners(v, corner_dofs))
         gradient = _scatter_corners(gradient, corner_dofs, [forces], dim)
     v = v - h * gradient * inverse_mass.repeat_interleave(dim)[:, None]
     return _finish_batch_last(obstacles, free, x, v, h, drift)
@@ -413,18 +415,18 @@ def batch_last_plan(terms: Sequence[EnergyTerm]) -> BatchLastPlan | None:
     """For batch-last kicks: the terms with `batch_last_forces` grouped by equal `element_vertices`
     (`_element_groups`), and the dissipative terms (`batch_last_dissipation_gradient`); None where
     another term is neither linear with a closed-form gradient (gravity) nor one of those."""
-    dissipative = tuple(term for term in terms if hasattr(term, "batch_last_dissipation_gradient"))
-    elastic = tuple(term for term in terms if not hasattr(term, "batch_last_dissipation_gradient"))
+    dissipative = tuple(term for term in terms if is_dissipative(term))
+    elastic = tuple(term for term in terms if not is_dissipative(term))
     groups = tuple(
         tuple(group) for group in _element_groups(elastic, lambda term: hasattr(term, "batch_last_forces"))
     )
     grouped = {index for group in groups for index in group}
     for index, term in enumerate(elastic):
         closed_form = type(term).value_and_gradient is not EnergyTerm.value_and_gradient
-        if index not in grouped and (
-            hasattr(term, "dissipation_gradient") or not (term.is_linear and closed_form)
-        ):
+        if index not in grouped and not (term.is_linear and closed_form):
             return None
+    if not all(hasattr(term, "batch_last_dissipation_gradient") for term in dissipative):
+        return None
     return BatchLastPlan(elastic, groups, dissipative)
 
 
@@ -471,8 +473,9 @@ def _leapfrog_batch_last(
     step: Tensor,
     substeps: int,
 ) -> tuple[Tensor, Tensor] | None:
-    # `leapfrog` laid out `[n·d, B]`: the first half drift here, then per substep one compiled kick
-    # with the drift after it (a whole step, a half for the last)
+    # `leapfrog` laid out `[n·d, B]`: the first half drift here, then per substep the compiled
+    # elastic kick and, with dissipative terms, the viscous one, then the drift (a whole step, a
+    # half for the last)
     batch, n, dim = x.shape
     if obstacles:
         v = project_contacts(obstacles, free, x, v, 0.5 * step)

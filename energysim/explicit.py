@@ -34,7 +34,7 @@ from torch import Tensor
 
 from energysim.contact.obstacles import HalfSpace, Obstacle, SphereObstacle
 from energysim.derivatives import HessianOperator
-from energysim.energies.base import EnergyTerm, limits_steps
+from energysim.energies.base import EnergyTerm, is_dissipative, limits_steps
 from energysim.mesh.simplex import format_indices
 from energysim.optim.base import ConvergenceError
 
@@ -69,12 +69,6 @@ class InstabilityError(ConvergenceError):
 def is_explicit_contact(term: EnergyTerm) -> bool:
     """Whether `term` is an obstacle that explicit steps handle by `Obstacle.contact_velocity`."""
     return isinstance(term, EXPLICIT_OBSTACLES)
-
-
-def is_dissipative(term: EnergyTerm) -> bool:
-    """Whether `term` dissipates through a velocity-dependent force (`Viscosity`), which explicit
-    kicks take from its `dissipation_gradient(x, v)` (see `leapfrog`)."""
-    return hasattr(term, "dissipation_gradient")
 
 
 def check_terms(terms: Sequence[EnergyTerm]) -> None:

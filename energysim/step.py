@@ -18,7 +18,7 @@ from torch import Tensor
 from energysim import compiled as compiled_functions
 from energysim import explicit
 from energysim.contact.obstacles import project_contacts
-from energysim.energies.base import EnergyTerm, limits_steps
+from energysim.energies.base import EnergyTerm, is_dissipative, limits_steps
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
@@ -387,7 +387,7 @@ def _explicit_step(
             scene.substeps,
         )
     if moved is None:
-        dissipative = [term for term in terms if explicit.is_dissipative(term)]
+        dissipative = [term for term in terms if is_dissipative(term)]
         inverse_mass = scene.free.to(x_prev.dtype) / scene.vertex_mass
 
         def acceleration(x: Tensor) -> Tensor:
@@ -457,7 +457,7 @@ def _stable_limits(
     in s (inf where there is none)."""
     objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass, action)
     courant = explicit.stable_step(objective.hessian(x), scene.vertex_mass, scene.free, x)
-    dissipative = [term for term in terms if explicit.is_dissipative(term)]
+    dissipative = [term for term in terms if is_dissipative(term)]
     return courant, explicit.stable_damping_step(dissipative, x, scene.vertex_mass, scene.free)
 
 

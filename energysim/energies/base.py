@@ -184,6 +184,13 @@ def limits_steps(term: EnergyTerm) -> bool:
     return type(term).step_limit is not EnergyTerm.step_limit
 
 
+def is_dissipative(term: EnergyTerm) -> bool:
+    """Whether `term` dissipates through a velocity-dependent force (`Viscosity`): explicit kicks
+    take it from `dissipation_gradient(x, v)`, compiled batches from
+    `batch_last_dissipation_gradient`."""
+    return hasattr(term, "dissipation_gradient")
+
+
 def has_element_blocks(term: EnergyTerm) -> bool:
     """Whether `term` enters Hessians as element blocks: a nonlinear element term without a
     per-vertex diagonal (`hessian_diagonal`). The eager assembly, the sparsity pattern and the

@@ -6,7 +6,13 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
-from energysim.fem.kinematics import deformation_gradient, shape_gradients, simplex_rest_frame
+from energysim.fem.kinematics import (
+    corner_forces_entries,
+    deformation_gradient,
+    deformation_gradient_entries,
+    shape_gradients,
+    simplex_rest_frame,
+)
 from energysim.fem.materials import (
     lame_parameters,
     stable_neo_hookean_density,
@@ -130,19 +136,10 @@ class NeoHookean(ElementEnergy):
         With F_ij = Σ_b x_bi ∇N_bj and P in entries (`stable_neo_hookean_stress_entries`), the whole
         element kernel is scalar arithmetic vectorised over the batch.
         """
-        dim = len(corners)
-        gradient = self.shape_gradient_t  # [k, d, m]
-        shape = [[gradient[b, j][:, None] for j in range(dim)] for b in range(dim + 1)]
-        F = [
-            [sum(corners[i][b] * shape[b][j] for b in range(dim + 1)) for j in range(dim)] for i in range(dim)
-        ]
+        F = deformation_gradient_entries(corners, self.shape_gradient_t)
         mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
         P = stable_neo_hookean_stress_entries(F, mu, lam)
-        volume = self.rest_volume[:, None]
-        return [
-            [volume * sum(P[i][j] * shape[b][j] for j in range(dim)) for b in range(dim + 1)]
-            for i in range(dim)
-        ]
+        return corner_forces_entries(P, self.shape_gradient_t, self.rest_volume)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.

@@ -23,7 +23,13 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter, check_positive, scatter_vertices
-from energysim.fem.kinematics import deformation_gradient, shape_gradients, simplex_rest_frame
+from energysim.fem.kinematics import (
+    corner_forces_entries,
+    deformation_gradient,
+    deformation_gradient_entries,
+    shape_gradients,
+    simplex_rest_frame,
+)
 from energysim.mesh import SimplexMesh
 
 
@@ -72,7 +78,7 @@ class Viscosity(EnergyTerm):
         """Zero energy and zero gradient: the term stores nothing."""
         return x.new_zeros(x.shape[0]), torch.zeros_like(x)
 
-    def _gradients(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    def _deformation_and_rate(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
         F = deformation_gradient(x[:, self.element_vertices], self.rest_edge_inverse)
         rate = deformation_gradient(v[:, self.element_vertices], self.rest_edge_inverse)
         return F, rate
@@ -80,12 +86,12 @@ class Viscosity(EnergyTerm):
     def dissipation(self, x: Tensor, v: Tensor) -> Tensor:
         """D(x, v) `[B]` in W (half the power the viscous forces take), at positions and velocities
         `[B, n, d]`."""
-        F, rate = self._gradients(x, v)
+        F, rate = self._deformation_and_rate(x, v)
         return (self.viscosity * self.rest_volume * strain_rate(F, rate).square().sum(dim=(-1, -2))).sum(-1)
 
     def dissipation_gradient(self, x: Tensor, v: Tensor) -> Tensor:
         """∂D/∂v `[B, n, d]` in N: minus the viscous forces (closed form, checked against autograd)."""
-        F, rate = self._gradients(x, v)
+        F, rate = self._deformation_and_rate(x, v)
         stress = 2.0 * self.viscosity * (F @ strain_rate(F, rate)) * self.rest_volume[:, None, None]
         corner = self.shape_gradient @ stress.transpose(-1, -2)  # [B, m, k, d]: V P ∇N_b
         return scatter_vertices(corner, self.element_vertices, x.shape[1])
@@ -96,26 +102,18 @@ class Viscosity(EnergyTerm):
         """∂D/∂v entry by entry with the batch innermost (see `NeoHookean.batch_last_forces`):
         `corners[i][b]` and `velocities[i][b]` `[m, B]`; returns ∂D/∂v_bi `[m, B]` in N."""
         dim = len(corners)
-        gradient = self.shape_gradient_t  # [k, d, m]
-        shape = [[gradient[b, j][:, None] for j in range(dim)] for b in range(dim + 1)]
-
-        def of(values: list[list[Tensor]]) -> list[list[Tensor]]:
-            return [
-                [sum(values[i][b] * shape[b][j] for b in range(dim + 1)) for j in range(dim)]
-                for i in range(dim)
-            ]
-
-        F, rate = of(corners), of(velocities)
+        F = deformation_gradient_entries(corners, self.shape_gradient_t)
+        rate = deformation_gradient_entries(velocities, self.shape_gradient_t)
         product = [[sum(F[k][a] * rate[k][c] for k in range(dim)) for c in range(dim)] for a in range(dim)]
         rate_of_strain = [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
-        scale = 2.0 * self.viscosity * self.rest_volume[:, None]
         stress = [
-            [scale * sum(F[i][a] * rate_of_strain[a][j] for a in range(dim)) for j in range(dim)]
+            [
+                2.0 * self.viscosity * sum(F[i][a] * rate_of_strain[a][j] for a in range(dim))
+                for j in range(dim)
+            ]
             for i in range(dim)
         ]
-        return [
-            [sum(stress[i][j] * shape[b][j] for j in range(dim)) for b in range(dim + 1)] for i in range(dim)
-        ]
+        return corner_forces_entries(stress, self.shape_gradient_t, self.rest_volume)
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """This step's `LaggedViscosity`, with F at the step's start `x_prev` `[B, n, d]`."""

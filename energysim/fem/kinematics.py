@@ -67,3 +67,32 @@ def shape_gradients(rest_edge_inverse: Tensor) -> Tensor:
     """
     rows = rest_edge_inverse  # row a of Dm⁻¹ is ∇N_{a+1}
     return torch.cat([-rows.sum(dim=-2, keepdim=True), rows], dim=-2)
+
+
+def deformation_gradient_entries(corners: list[list[Tensor]], shape_gradient_t: Tensor) -> list[list[Tensor]]:
+    """F_ij = Σ_b x_bi ∇N_bj entry by entry, with the batch innermost: `corners[i][b]` is coordinate
+    i of every element's corner b, `[m, B]` (positions in m, or velocities, which give Ḟ);
+    `shape_gradient_t` is ∇N as `[k, d, m]`. Returns F[i][j], `[m, B]` each. Scalar arithmetic that a
+    compiler fuses into one loop over the elements (see `energysim.compiled`)."""
+    dim = len(corners)
+    return [
+        [sum(corners[i][b] * shape_gradient_t[b, j][:, None] for b in range(dim + 1)) for j in range(dim)]
+        for i in range(dim)
+    ]
+
+
+def corner_forces_entries(
+    stress: list[list[Tensor]], shape_gradient_t: Tensor, rest_volume: Tensor
+) -> list[list[Tensor]]:
+    """V Σ_j P_ij ∇N_bj entry by entry: the corner gradients `[i][b]`, `[m, B]` each, of a first
+    Piola–Kirchhoff stress P given as `stress[i][j]` `[m, B]` (`deformation_gradient_entries`'s
+    layout), `rest_volume` V `[m]`."""
+    dim = len(stress)
+    volume = rest_volume[:, None]
+    return [
+        [
+            volume * sum(stress[i][j] * shape_gradient_t[b, j][:, None] for j in range(dim))
+            for b in range(dim + 1)
+        ]
+        for i in range(dim)
+    ]
