@@ -1,6 +1,6 @@
 """Simplex meshes (tetrahedra in 3D, triangles in 2D): validation, generators and file I/O."""
 
-from .io import load_mesh
+from .io import MeshFileError, MeshFileNotFoundError, load_mesh
 from .primitives import kuhn_pattern
 from .simplex import SimplexMesh, TetMesh, TriMesh, format_indices, signed_volumes
 
@@ -9,6 +9,8 @@ __all__ = [
     "TetMesh",
     "TriMesh",
     "load_mesh",
+    "MeshFileError",
+    "MeshFileNotFoundError",
     "signed_volumes",
     "format_indices",
     "kuhn_pattern",

@@ -1,13 +1,15 @@
 """Simplex meshes: tetrahedra in 3D, triangles in 2D, validated once at construction.
 
 Every later module trusts these invariants: finite float64 rest positions, int64 element indices in range,
-no degenerate elements, no orphan vertices and positive orientation of every element.
+no degenerate elements, no element listed twice, no two elements overlapping across a shared facet, no
+orphan vertices and positive orientation of every element.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import math
 from collections.abc import Mapping
 from os import PathLike
 from typing import Any
@@ -38,6 +40,14 @@ def format_indices(indices: torch.Tensor, limit: int = 10) -> str:
     return text
 
 
+def _edge_determinant(edges: torch.Tensor) -> torch.Tensor:
+    """det of the d edge vectors `edges[..., k, :]` (shape `[..., d, d]`), shape `[...]`."""
+    if edges.shape[-1] == 3:
+        # Explicit triple product: exactly zero for repeated vertices, unlike an LU-based determinant.
+        return (edges[..., 0, :] * torch.linalg.cross(edges[..., 1, :], edges[..., 2, :])).sum(-1)
+    return edges[..., 0, 0] * edges[..., 1, 1] - edges[..., 0, 1] * edges[..., 1, 0]
+
+
 def signed_volumes(vertices: torch.Tensor, elements: torch.Tensor) -> torch.Tensor:
     """Signed simplex volumes, differentiable in `vertices`.
 
@@ -47,10 +57,7 @@ def signed_volumes(vertices: torch.Tensor, elements: torch.Tensor) -> torch.Tens
     """
     x = vertices[elements]
     edges = x[:, 1:] - x[:, :1]
-    if vertices.shape[1] == 3:
-        # Explicit triple product: exactly zero for repeated vertices, unlike an LU-based determinant.
-        return (edges[:, 0] * torch.linalg.cross(edges[:, 1], edges[:, 2])).sum(-1) / 6.0
-    return (edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]) / 2.0
+    return _edge_determinant(edges) / (6.0 if vertices.shape[1] == 3 else 2.0)
 
 
 def _to_tensor(data: Any) -> torch.Tensor:
@@ -77,12 +84,97 @@ def _row_counts(rows: torch.Tensor) -> torch.Tensor:
     return counts[inverse]
 
 
+def _check_degenerate(vertices: torch.Tensor, elements: torch.Tensor, dim: int) -> None:
+    """Refuse elements with a repeated vertex or (near) zero volume, and volumes float64 cannot hold.
+
+    Flatness is judged on each element scaled to unit size (its edges divided by its largest coordinate
+    extent), so the test is the same for a mesh in micrometres or in kilometres and cannot overflow.
+    """
+    sorted_ids = elements.sort(dim=1).values
+    repeated = (sorted_ids[:, 1:] == sorted_ids[:, :-1]).any(dim=1)
+    x = vertices[elements]
+    extent = (x.amax(dim=1) - x.amin(dim=1)).amax(dim=1)
+    unit = (x[:, 1:] - x[:, :1]) / torch.where(extent > 0, extent, torch.ones_like(extent))[:, None, None]
+    unit_volume = _edge_determinant(unit) / math.factorial(dim)
+    pairs = torch.tensor(list(itertools.combinations(range(dim), 2)))
+    # Edges between vertices 1..d, plus the d edges from vertex 0 (the rows of `unit`).
+    other_edges = unit[:, pairs[:, 1]] - unit[:, pairs[:, 0]]
+    lengths = torch.cat([unit.norm(dim=-1), other_edges.norm(dim=-1)], dim=1)
+    mean_edge = lengths.mean(dim=1)
+    # Written as "not above" so that a NaN from coincident vertices counts as flat.
+    flat = ~(unit_volume.abs() > DEGENERACY_TOLERANCE * mean_edge**dim)
+    bad = torch.nonzero(repeated | flat | (extent == 0)).flatten()
+    if bad.numel():
+        raise ValueError(
+            f"{bad.numel()} degenerate (repeated-vertex or near-zero-volume) elements {format_indices(bad)}"
+        )
+    volume = signed_volumes(vertices, elements)
+    bad = torch.nonzero(~torch.isfinite(volume) | (volume == 0)).flatten()
+    if bad.numel():
+        raise ValueError(
+            f"elements {format_indices(bad)} are well shaped but their volumes overflow or underflow "
+            f"float64 (element sizes {float(extent.min()):.3g} to {float(extent.max()):.3g} m); "
+            "rescale the mesh to metres"
+        )
+
+
+def _check_distinct(elements: torch.Tensor) -> None:
+    """Refuse two elements on the same vertex set (an element listed twice, in any vertex order)."""
+    key_counts = _row_counts(elements.sort(dim=1).values)
+    bad = torch.nonzero(key_counts > 1).flatten()
+    if bad.numel():
+        raise ValueError(
+            f"elements {format_indices(bad)} repeat another element's vertices (an element listed twice, "
+            "possibly with its vertices permuted); each element must appear once"
+        )
+
+
+def _permutation_parity(order: torch.Tensor) -> torch.Tensor:
+    """Parity (0 even, 1 odd) of each row of `order`, a permutation of 0..k-1, shape `[r, k]`."""
+    k = order.shape[1]
+    inversions = sum((order[:, i] > order[:, j]).long() for i in range(k) for j in range(i + 1, k))
+    return inversions % 2
+
+
+def _check_no_overlap(elements: torch.Tensor, dim: int) -> None:
+    """Refuse positively oriented elements that overlap in volume across a shared facet.
+
+    In a valid mesh a facet bounds at most two elements, one on each side, so the two traverse it in
+    opposite orientations. A facet of three or more elements, or of two that traverse it the same way
+    (both on the same side), means the elements overlap.
+    """
+    local = _TET_FACES if dim == 3 else _TRI_EDGES
+    facets = elements[:, local].reshape(-1, dim)
+    ordered = facets.sort(dim=1)
+    parity = _permutation_parity(ordered.indices)
+    owner = torch.arange(elements.shape[0]).repeat_interleave(len(local))
+    shared = _row_counts(ordered.values)
+    same_way = _row_counts(torch.cat([ordered.values, parity[:, None]], dim=1))
+    crowded = shared > 2
+    if bool(crowded.any()):
+        first = facets[crowded][0].sort().values
+        raise ValueError(
+            f"elements {format_indices(torch.unique(owner[crowded]))} overlap: facets shared by more than "
+            f"two elements (e.g. vertices {format_indices(first)})"
+        )
+    same_side = (shared == 2) & (same_way == 2)
+    if bool(same_side.any()):
+        first = facets[same_side][0].sort().values
+        raise ValueError(
+            f"elements {format_indices(torch.unique(owner[same_side]))} overlap: they lie on the same side "
+            f"of a shared facet (e.g. vertices {format_indices(first)})"
+        )
+
+
 class SimplexMesh:
     """Dimension-generic simplex mesh (d = 2 or 3) with validated, positively oriented elements.
 
     `vertices`: rest positions, shape `[n, d]`, float64, in m. `elements`: vertex indices, shape
     `[m, d + 1]`, int64. Negatively oriented elements are repaired by swapping their last two vertices;
-    every other defect raises ValueError naming the offending indices.
+    every other defect raises ValueError naming the offending indices: non-finite coordinates, indices
+    out of range, flat elements (judged relative to each element's size, so any unit scale works),
+    elements repeated (in any vertex order), elements overlapping across a shared facet, and vertices
+    that no element uses (they would carry no mass; the file loaders drop them with `prune`).
     """
 
     def __init__(self, vertices: Any, elements: Any, dim: int | None = None) -> None:
@@ -114,19 +206,9 @@ class SimplexMesh:
                 f"elements {format_indices(bad)} reference vertex indices outside [0, {n}) ({n} vertices)"
             )
 
+        _check_degenerate(vertices, elements, dim)
         volume = signed_volumes(vertices, elements)
-        sorted_ids = elements.sort(dim=1).values
-        repeated = (sorted_ids[:, 1:] == sorted_ids[:, :-1]).any(dim=1)
-        pairs = torch.tensor(list(itertools.combinations(range(dim + 1), 2)))
-        x = vertices[elements]
-        mean_edge = (x[:, pairs[:, 1]] - x[:, pairs[:, 0]]).norm(dim=-1).mean(dim=1)
-        flat = volume.abs() <= DEGENERACY_TOLERANCE * mean_edge**dim
-        bad = torch.nonzero(repeated | flat).flatten()
-        if bad.numel():
-            raise ValueError(
-                f"{bad.numel()} degenerate (repeated-vertex or near-zero-volume) "
-                f"elements {format_indices(bad)}"
-            )
+        _check_distinct(elements)
 
         used = torch.bincount(elements.flatten(), minlength=n) > 0
         bad = torch.nonzero(~used).flatten()
@@ -139,6 +221,7 @@ class SimplexMesh:
             # Swapping two vertices flips the sign of the determinant and leaves the element unchanged.
             elements[negative] = elements[negative][:, [*range(dim - 1), dim, dim - 1]]
             logger.info("reoriented %d of %d negatively oriented elements", count, elements.shape[0])
+        _check_no_overlap(elements, dim)
 
         self.vertices: torch.Tensor = vertices
         self.elements: torch.Tensor = elements.contiguous()
@@ -243,8 +326,12 @@ class TetMesh(SimplexMesh):
     @classmethod
     def load(cls, path: str | PathLike[str], prune: bool = True) -> TetMesh:
         """Read the "tetra" cells of any meshio format (all blocks); `prune` drops unused vertices and
-        renumbers. FileNotFoundError if `path` is missing, ValueError if it has no "tetra" cells."""
-        return cls(*mesh_io.read_simplices(path, "tetra", prune))
+        renumbers. Every failure (missing, unreadable or corrupt file, no "tetra" cells, an invalid mesh)
+        is a `MeshFileError` (a ValueError; a FileNotFoundError too when nothing is at `path`) naming
+        `path`."""
+        vertices, tets = mesh_io.read_simplices(path, "tetra", prune)
+        with mesh_io.reading(path):
+            return cls(vertices, tets)
 
 
 class TriMesh(SimplexMesh):
@@ -255,7 +342,8 @@ class TriMesh(SimplexMesh):
         if vertices.ndim == 2 and vertices.shape[1] == 3 and vertices.shape[0] > 0:
             _check_finite(vertices)
             z = vertices[:, 2].to(torch.float64)
-            scale = max(1.0, float(vertices.to(torch.float64).abs().max()))
+            # Relative to the coordinates' magnitude, so the test means the same at any scale.
+            scale = float(vertices.to(torch.float64).abs().max())
             if float((z - z[0]).abs().max()) > 1e-12 * scale:
                 raise ValueError("TriMesh needs planar vertices: got shape [n, 3] with non-constant z")
             vertices = vertices[:, :2]
@@ -288,8 +376,12 @@ class TriMesh(SimplexMesh):
     @classmethod
     def load(cls, path: str | PathLike[str], prune: bool = True) -> TriMesh:
         """Read the "triangle" cells of any meshio format (all blocks); `prune` drops unused vertices and
-        renumbers. FileNotFoundError if `path` is missing, ValueError if it has no "triangle" cells."""
-        return cls(*mesh_io.read_simplices(path, "triangle", prune))
+        renumbers. Every failure (missing, unreadable or corrupt file, no "triangle" cells, an invalid
+        mesh) is a `MeshFileError` (a ValueError; a FileNotFoundError too when nothing is at `path`)
+        naming `path`."""
+        vertices, triangles = mesh_io.read_simplices(path, "triangle", prune)
+        with mesh_io.reading(path):
+            return cls(vertices, triangles)
 
 
 __all__ = ["SimplexMesh", "TetMesh", "TriMesh", "signed_volumes", "format_indices"]
