@@ -10,9 +10,11 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
+from typing import Any
 
 import meshio
 import numpy as np
@@ -23,7 +25,13 @@ from energysim.contact import Ground
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.energies.neo_hookean import NeoHookean
 from energysim.mesh import SimplexMesh, TetMesh, TriMesh
-from energysim.mesh.io import read_meshio, simplices_from_meshio
+from energysim.mesh.io import (
+    MeshFileError,
+    MeshFileNotFoundError,
+    read_meshio,
+    reading,
+    simplices_from_meshio,
+)
 from energysim.optim import Solver
 from energysim.scene import Scene
 
@@ -172,16 +180,138 @@ def default_meshes_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "meshes"
 
 
+def _describe(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:60] + "..."
+
+
+def _read_sidecar(path: Path) -> dict[str, Any]:
+    """The JSON object in `path`; MeshFileError naming `path` when it is not UTF-8 JSON holding an object."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise MeshFileError(
+            path, f"cannot be read as UTF-8 text ({type(error).__name__}: {error})"
+        ) from error
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise MeshFileError(
+            path, f"is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})"
+        ) from error
+    except RecursionError as error:
+        raise MeshFileError(path, "is not valid JSON (nested too deeply)") from error
+    if not isinstance(data, dict):
+        raise MeshFileError(path, f"must hold a JSON object, got {type(data).__name__}")
+    return data
+
+
+def _entry(data: dict[str, Any], key: str, path: Path, expected: str) -> Any:
+    if key not in data:
+        raise MeshFileError(path, f"missing key {key!r} ({expected}); rebuild it with {MAKE_SCRIPT}")
+    return data[key]
+
+
+def _is_number(value: object) -> bool:
+    # bool is an int in Python, but `true` is no number in a JSON file.
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _number(
+    data: dict[str, Any], key: str, path: Path, expected: str, valid: Callable[[float], bool]
+) -> float:
+    value = _entry(data, key, path, expected)
+    if not (_is_number(value) and valid(float(value))):
+        raise MeshFileError(path, f"key {key!r} must be {expected}, got {_describe(value)}")
+    return float(value)
+
+
+def _integer(data: dict[str, Any], key: str, path: Path, expected: str, valid: Callable[[int], bool]) -> int:
+    value = _entry(data, key, path, expected)
+    if not (isinstance(value, int) and not isinstance(value, bool) and valid(value)):
+        raise MeshFileError(path, f"key {key!r} must be {expected}, got {_describe(value)}")
+    return value
+
+
+def _sequence(
+    data: dict[str, Any], key: str, path: Path, length: int, item: str, valid: Callable[[object], bool]
+) -> list[Any]:
+    expected = f"a list of {length} {item}"
+    value = _entry(data, key, path, expected)
+    if not isinstance(value, list) or len(value) != length:
+        raise MeshFileError(path, f"key {key!r} must be {expected}, got {_describe(value)}")
+    bad = [index for index, entry in enumerate(value) if not valid(entry)]
+    if bad:
+        raise MeshFileError(
+            path,
+            f"key {key!r} must be {expected}; entries {bad[:10]} are not, e.g. {_describe(value[bad[0]])}",
+        )
+    return value
+
+
 def _cell_data(mesh: meshio.Mesh, name: str, cell_type: str, path: Path) -> np.ndarray:
     arrays = mesh.cell_data.get(name, [])
     if len(arrays) != len(mesh.cells):
-        raise ValueError(f"{path} has no {name!r} cell data; rebuild it with {MAKE_SCRIPT}")
+        raise MeshFileError(path, f"has no {name!r} cell data; rebuild it with {MAKE_SCRIPT}")
     blocks = [
         np.asarray(data) for block, data in zip(mesh.cells, arrays, strict=True) if block.type == cell_type
     ]
     if not blocks:
-        raise ValueError(f"{path} has no {name!r} cell data; rebuild it with {MAKE_SCRIPT}")
+        raise MeshFileError(path, f"has no {name!r} cell data; rebuild it with {MAKE_SCRIPT}")
+    if any(not np.issubdtype(block.dtype, np.number) for block in blocks):
+        raise MeshFileError(path, f"{name!r} cell data must be numbers, got dtype {blocks[0].dtype}")
+    if len({block.shape[1:] for block in blocks}) != 1:
+        raise MeshFileError(path, f"{name!r} cell data blocks have different shapes")
     return np.concatenate(blocks)
+
+
+def _actuators(values: np.ndarray, num_actuators: int, path: Path, sidecar_path: Path) -> Tensor:
+    """The actuator cell data as int64 `[m]`, each in [−1, a), every actuator used by some element."""
+    if values.ndim == 2 and values.shape[1] == 1:
+        values = values[:, 0]
+    if values.ndim != 1:
+        raise MeshFileError(
+            path, f"'actuator' cell data must have one entry per element, got shape {values.shape}"
+        )
+    bad = np.flatnonzero(~np.isfinite(values) | (values != np.round(values)))
+    if bad.size:
+        raise MeshFileError(path, f"'actuator' cell data of elements {bad[:10].tolist()} is not an integer")
+    actuators = values.astype(np.int64)
+    bad = np.flatnonzero((actuators < -1) | (actuators >= num_actuators))
+    if bad.size:
+        raise MeshFileError(
+            path,
+            f"elements {bad[:10].tolist()} have actuators {actuators[bad[:10]].tolist()}, outside [-1, "
+            f"{num_actuators}) (-1: passive; {sidecar_path.name} declares {num_actuators} actuators)",
+        )
+    unused = np.setdiff1d(np.arange(num_actuators), actuators)
+    if unused.size:
+        raise MeshFileError(
+            sidecar_path,
+            f"actuators {unused[:10].tolist()} (of 'num_actuators' = {num_actuators}) drive no element of "
+            f"{path.name}; every declared actuator needs cells",
+        )
+    return torch.from_numpy(actuators)
+
+
+def _fibres(values: np.ndarray, actuators: Tensor, dim: int, path: Path) -> Tensor:
+    """The fibre cell data as float64 `[m, d]`: finite, and of unit length on every actuated element."""
+    if values.ndim != 2 or values.shape != (actuators.shape[0], dim):
+        raise MeshFileError(
+            path, f"'fibre' cell data has shape {values.shape}; expected [{actuators.shape[0]}, {dim}]"
+        )
+    fibres = values.astype(np.float64)
+    length = np.linalg.norm(fibres, axis=1)
+    bad = np.flatnonzero(
+        ~np.isfinite(fibres).all(axis=1) | ((actuators.numpy() >= 0) & ~(np.abs(length - 1) < 1e-6))
+    )
+    if bad.size:
+        raise MeshFileError(
+            path,
+            f"'fibre' cell data of elements {bad[:10].tolist()} is not finite, or not of unit length on a "
+            "muscle element",
+        )
+    return torch.from_numpy(fibres)
 
 
 def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> Creature:
@@ -192,38 +322,58 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
         meshes_dir: folder of the files; default `default_meshes_dir()`.
 
     Raises:
-        ValueError: unknown name, or a file whose arrays do not fit its mesh.
-        FileNotFoundError: a missing file, naming its path and the script that makes it.
+        ValueError: unknown name, listing the shipped ones.
+        MeshFileError: a missing file (then also a FileNotFoundError, naming the script that makes it),
+            an unreadable or corrupt one, a JSON file with a missing or ill-typed key, or cell data that
+            do not fit the mesh or the declared actuators; the message names the file and, for the
+            JSON file, the key.
     """
     if name not in CREATURES:
-        raise ValueError(f"unknown creature {name!r}; choose one of {CREATURES}")
+        raise ValueError(f"unknown creature {name!r}; choose one of {', '.join(CREATURES)}")
     folder = default_meshes_dir() if meshes_dir is None else Path(meshes_dir)
     mesh_path, sidecar_path = folder / f"{name}.vtu", folder / f"{name}.json"
     for path in (mesh_path, sidecar_path):
-        if not path.is_file():
-            raise FileNotFoundError(f"creature file {path} not found; make it with `python {MAKE_SCRIPT}`")
-    metadata = json.loads(sidecar_path.read_text())
+        if not path.exists():
+            raise MeshFileNotFoundError(path, f"creature file not found; make it with `python {MAKE_SCRIPT}`")
+    metadata = _read_sidecar(sidecar_path)
+    dim = _integer(metadata, "dim", sidecar_path, "2 or 3", lambda d: d in (2, 3))
+    num_actuators = _integer(metadata, "num_actuators", sidecar_path, "an integer >= 1", lambda a: a >= 1)
+    phases = _sequence(
+        metadata, "gait_phases", sidecar_path, num_actuators, "finite numbers (rad)", _is_number
+    )
+    names = _sequence(
+        metadata, "actuator_names", sidecar_path, num_actuators, "strings", lambda v: isinstance(v, str)
+    )
+    description = _entry(metadata, "description", sidecar_path, "a string")
+    if not isinstance(description, str):
+        raise MeshFileError(sidecar_path, f"key 'description' must be a string, got {_describe(description)}")
+    numbers = {
+        key: _number(metadata, key, sidecar_path, expected, valid)
+        for key, expected, valid in (
+            ("youngs_modulus", "a number > 0 (Pa)", lambda v: v > 0),
+            ("poissons_ratio", "a number in (-1, 0.5)", lambda v: -1 < v < 0.5),
+            ("density", "a number > 0 (kg/m^3)", lambda v: v > 0),
+            ("muscle_stiffness", "a number >= 0 (Pa)", lambda v: v >= 0),
+            ("max_contraction", "a number in (0, 1)", lambda v: 0 < v < 1),
+            ("gait_frequency", "a number >= 0 (Hz)", lambda v: v >= 0),
+            ("gait_amplitude", "a number in [0, 1]", lambda v: 0 <= v <= 1),
+        )
+    }
+
     raw = read_meshio(mesh_path)
-    dim = int(metadata["dim"])
     cell_type = "tetra" if dim == 3 else "triangle"
-    # No pruning: the cell data stay aligned with the elements, which pruning would keep anyway.
-    vertices, elements = simplices_from_meshio(raw, cell_type, prune=False, source=str(mesh_path))
-    mesh = TetMesh(vertices, elements) if dim == 3 else TriMesh(vertices, elements)
-    actuators = torch.from_numpy(_cell_data(raw, "actuator", cell_type, mesh_path).astype(np.int64))
-    fibres = torch.from_numpy(_cell_data(raw, "fibre", cell_type, mesh_path).astype(np.float64))
-    count = mesh.num_elements
-    if tuple(actuators.shape) != (count,) or tuple(fibres.shape) != (count, dim):
-        raise ValueError(
-            f"{mesh_path}: actuator {tuple(actuators.shape)} and fibre {tuple(fibres.shape)} cell data "
-            f"do not fit {count} elements in {dim}D"
+    with reading(mesh_path):
+        # No pruning: the cell data stay aligned with the elements, which pruning would keep anyway.
+        vertices, elements = simplices_from_meshio(raw, cell_type, prune=False, source=f"the {dim}D creature")
+        mesh = TetMesh(vertices, elements) if dim == 3 else TriMesh(vertices, elements)
+    actuator_data = _cell_data(raw, "actuator", cell_type, mesh_path)
+    if actuator_data.shape[0] != mesh.num_elements:
+        raise MeshFileError(
+            mesh_path,
+            f"'actuator' cell data has {actuator_data.shape[0]} entries for {mesh.num_elements} elements",
         )
-    num_actuators = int(metadata["num_actuators"])
-    phases = tuple(float(phase) for phase in metadata["gait_phases"])
-    if int(actuators.max()) + 1 != num_actuators or len(phases) != num_actuators:
-        raise ValueError(
-            f"{sidecar_path} declares {num_actuators} actuators with {len(phases)} gait phases; "
-            f"the mesh uses {int(actuators.max()) + 1}"
-        )
+    actuators = _actuators(actuator_data, num_actuators, mesh_path, sidecar_path)
+    fibres = _fibres(_cell_data(raw, "fibre", cell_type, mesh_path), actuators, dim, mesh_path)
     low, high = mesh.bounding_box()
     return Creature(
         name=name,
@@ -232,16 +382,10 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
         fibres=fibres,
         num_actuators=num_actuators,
         body_length=float(high[0] - low[0]),
-        description=str(metadata["description"]),
-        actuator_names=tuple(metadata["actuator_names"]),
-        youngs_modulus=float(metadata["youngs_modulus"]),
-        poissons_ratio=float(metadata["poissons_ratio"]),
-        density=float(metadata["density"]),
-        muscle_stiffness=float(metadata["muscle_stiffness"]),
-        max_contraction=float(metadata["max_contraction"]),
-        gait_frequency=float(metadata["gait_frequency"]),
-        gait_amplitude=float(metadata["gait_amplitude"]),
-        gait_phases=phases,
+        description=description,
+        actuator_names=tuple(names),
+        gait_phases=tuple(float(phase) for phase in phases),
+        **numbers,
     )
 
 

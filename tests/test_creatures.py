@@ -174,13 +174,13 @@ def test_meshes_folder_override_and_missing_files(tmp_path, monkeypatch):
     monkeypatch.setenv("ENERGYSIM_MESHES", str(tmp_path))
     assert default_meshes_dir() == tmp_path
     with pytest.raises(
-        FileNotFoundError, match=r"worm\.vtu not found; make it with .*scripts/make_creatures\.py"
+        FileNotFoundError, match=r"worm\.vtu: creature file not found; make it with .*scripts/make_creatures\.py"
     ):
         load_creature("worm")
     make_creatures.write_creature(make_creatures.build_creature(make_creatures.worm()), tmp_path)
     assert torch.equal(load_creature("worm").actuators, load_creature("worm", shipped).actuators)
     (tmp_path / "worm.json").unlink()
-    with pytest.raises(FileNotFoundError, match=r"worm\.json not found"):
+    with pytest.raises(FileNotFoundError, match=r"worm\.json: creature file not found"):
         load_creature("worm")
     with pytest.raises(ValueError, match="unknown creature 'dragon'"):
         load_creature("dragon")
