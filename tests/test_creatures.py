@@ -174,7 +174,8 @@ def test_meshes_folder_override_and_missing_files(tmp_path, monkeypatch):
     monkeypatch.setenv("ENERGYSIM_MESHES", str(tmp_path))
     assert default_meshes_dir() == tmp_path
     with pytest.raises(
-        FileNotFoundError, match=r"worm\.vtu: creature file not found; make it with .*scripts/make_creatures\.py"
+        FileNotFoundError,
+        match=r"worm\.vtu: creature file not found; make it with .*scripts/make_creatures\.py",
     ):
         load_creature("worm")
     make_creatures.write_creature(make_creatures.build_creature(make_creatures.worm()), tmp_path)

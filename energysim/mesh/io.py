@@ -66,7 +66,10 @@ def _excerpt(error: BaseException) -> str:
     text = text or "no details"
     if len(text) > _MAX_DETAIL:
         text = text[:_MAX_DETAIL] + "..."
-    return f"{type(error).__name__}: {text}"
+    module = type(error).__module__.split(".")[0]
+    # zlib.error and binascii.Error say little without their module.
+    kind = type(error).__name__ if module in ("builtins", "meshio") else f"{module}.{type(error).__name__}"
+    return f"{kind}: {text}"
 
 
 def mesh_formats(path: str | PathLike[str]) -> list[str]:
