@@ -72,16 +72,27 @@ def _check_finite(vertices: torch.Tensor) -> None:
         raise ValueError(f"vertices {format_indices(bad)} have NaN or infinite coordinates")
 
 
-def _row_counts(rows: torch.Tensor) -> torch.Tensor:
-    """For non-negative integer rows, shape `[r, k]`, how many rows equal each one, shape `[r]`."""
+def _row_keys(rows: torch.Tensor) -> torch.Tensor:
+    """For non-negative integer rows, shape `[r, k]`, an int64 key per row, shape `[r]`, equal exactly
+    for equal rows."""
     # Fold the columns into one scalar key, replacing the partial key by its dense rank before each
     # step so it stays below r * n (no int64 overflow); 1-D unique is far faster than unique(dim=0).
     key = rows[:, 0]
     for column in range(1, rows.shape[1]):
         rank = torch.unique(key, return_inverse=True)[1]
         key = rank * (int(rows[:, column].max()) + 1) + rows[:, column]
+    return key
+
+
+def _key_counts(key: torch.Tensor) -> torch.Tensor:
+    """How many entries of `key` (shape `[r]`) equal each one, shape `[r]`."""
     _, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
     return counts[inverse]
+
+
+def _row_counts(rows: torch.Tensor) -> torch.Tensor:
+    """For non-negative integer rows, shape `[r, k]`, how many rows equal each one, shape `[r]`."""
+    return _key_counts(_row_keys(rows))
 
 
 def _check_degenerate(vertices: torch.Tensor, elements: torch.Tensor, dim: int) -> None:
@@ -148,8 +159,9 @@ def _check_no_overlap(elements: torch.Tensor, dim: int) -> None:
     ordered = facets.sort(dim=1)
     parity = _permutation_parity(ordered.indices)
     owner = torch.arange(elements.shape[0]).repeat_interleave(len(local))
-    shared = _row_counts(ordered.values)
-    same_way = _row_counts(torch.cat([ordered.values, parity[:, None]], dim=1))
+    key = _row_keys(ordered.values)
+    shared = _key_counts(key)
+    same_way = _key_counts(2 * torch.unique(key, return_inverse=True)[1] + parity)
     crowded = shared > 2
     if bool(crowded.any()):
         first = facets[crowded][0].sort().values
