@@ -85,6 +85,9 @@ class ServerLimits:
 class _HeadTooLarge(http.client.LineTooLong):
     """The request head outgrew `ServerLimits.max_head_bytes` (http.server answers LineTooLong with 431)."""
 
+    def __init__(self, limit: int) -> None:
+        http.client.HTTPException.__init__(self, f"request line and headers over {limit} bytes")
+
 
 class _HeadReader(io.RawIOBase):
     """Reads a connection under the current request head's deadline and byte budget.
@@ -98,9 +101,10 @@ class _HeadReader(io.RawIOBase):
         self._connection = connection
         self._deadline: float | None = None
         self._budget: int | None = None
+        self._limit = 0
 
     def start_head(self, timeout: float, max_bytes: int) -> None:
-        self._deadline, self._budget = time.monotonic() + timeout, max_bytes
+        self._deadline, self._budget, self._limit = time.monotonic() + timeout, max_bytes, max_bytes
 
     def end_head(self) -> None:
         self._deadline, self._budget = None, None
@@ -117,7 +121,7 @@ class _HeadReader(io.RawIOBase):
         view = memoryview(buffer).cast("B")
         if self._budget is not None:
             if self._budget <= 0:
-                raise _HeadTooLarge("request head")
+                raise _HeadTooLarge(self._limit)
             view = view[: self._budget]
         count = self._connection.recv_into(view)
         if self._budget is not None:
