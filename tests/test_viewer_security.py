@@ -273,6 +273,37 @@ def test_http09_request_line_gets_an_answer_at_once() -> None:
             assert time.monotonic() - started < 5.0  # far below head_timeout
 
 
+def test_each_connection_serves_one_request_even_when_keep_alive_is_asked() -> None:
+    # nothing is left idle between requests: the server answers HTTP/1.0 and closes
+    with Viewer(_mesh()) as viewer:
+        viewer.serve(0, limits=ServerLimits(head_timeout=30.0))
+        started = time.monotonic()
+        request = f"GET /version HTTP/1.1\r\nHost: localhost:{viewer.port}\r\nConnection: keep-alive\r\n\r\n"
+        response = exchange(viewer, request.encode())
+        assert status(response) == 200 and response.startswith(b"HTTP/1.0")
+        assert time.monotonic() - started < 5.0  # closed by the server, not by the 30 s head timeout
+
+
+def _ipv6_loopback() -> bool:
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _ipv6_loopback(), reason="this machine has no IPv6 loopback")
+def test_ipv6_loopback_answers_its_bracketed_literal_only() -> None:
+    with Viewer(_mesh()) as viewer:
+        viewer.serve(0, host="::1", limits=FAST)
+        assert viewer.url == f"http://[::1]:{viewer.port}/"
+        assert status(get(viewer, f"[::1]:{viewer.port}")) == 200
+        assert status(get(viewer, f"localhost:{viewer.port}")) == 200
+        assert status(get(viewer, f"[::2]:{viewer.port}")) == 421
+        assert status(get(viewer, f"evil.example:{viewer.port}")) == 421
+
+
 def test_connections_beyond_the_limit_are_refused_at_once_with_503() -> None:
     limits = ServerLimits(head_timeout=1.0, max_connections=4)
     with Viewer(_mesh()) as viewer:

@@ -306,7 +306,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             return True
         logger.info("viewer: refused a request from %s for host %r", self.client_address, host)
         self.close_connection = True
-        self.send_error(HTTPStatus.MISDIRECTED_REQUEST, "this server does not answer for that host")
+        # The host goes into the escaped body only: a header may hold line breaks, a status line may not.
+        self.send_error(
+            HTTPStatus.MISDIRECTED_REQUEST,
+            "this server does not answer for that host",
+            f"Host {host!r} is not a name of this viewer. Open the URL it printed, or list the name in "
+            "Viewer.serve(allowed_hosts=[...])",
+        )
         return False
 
     def do_GET(self) -> None:  # noqa: N802 - http.server's naming
