@@ -385,7 +385,7 @@ def test_client_disconnects_mid_download_are_harmless(caplog: pytest.LogCaptureF
         caplog.set_level(logging.DEBUG, logger="energysim.viewer")
         for _ in range(3):
             client = socket.create_connection((viewer.host, viewer.port), timeout=5)
-            client.sendall(b"GET /trajectory.bin HTTP/1.1\r\nHost: x\r\n\r\n")
+            client.sendall(f"GET /trajectory.bin HTTP/1.1\r\nHost: 127.0.0.1:{viewer.port}\r\n\r\n".encode())
             assert client.recv(1024).startswith(b"HTTP/1.0 200")
             # replace the trajectory while the download is in progress, then drop the connection with a
             # reset (linger 0) rather than a polite close

@@ -10,29 +10,29 @@
 
 The server serves a fixed set of names only: the page, its two scripts, the three.js licence, the
 trajectory (``/trajectory.bin``, see `energysim.viewer.trajectory`) and ``/version``, which the page polls.
-Every other path, including any with ``..``, gets 404; nothing is looked up on the file system.
+Every other path, including any with ``..``, gets 404; nothing is looked up on the file system. It
+answers only requests addressed to its own host, within time, size and connection limits
+(`energysim.viewer.httpd`).
 """
 
 from __future__ import annotations
 
 import errno
-import http.server
 import importlib.resources
 import json
 import logging
 import secrets
-import socket
 import threading
 from collections.abc import Mapping, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
-from urllib.parse import urlsplit
 
 import numpy as np
 
 from energysim.mesh import SimplexMesh
 
 from . import trajectory
+from .httpd import Server, ServerLimits
 from .trajectory import Marker, Surface
 
 if TYPE_CHECKING:
@@ -48,7 +48,6 @@ _ASSETS = {
     "/three.bundle.min.js": ("three.bundle.min.js", "text/javascript; charset=utf-8"),
     "/THREE_LICENSE.txt": ("THREE_LICENSE.txt", "text/plain; charset=utf-8"),
 }
-_DISCONNECTS = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
 
 
 def _load_assets() -> dict[str, tuple[bytes, str]]:
@@ -101,7 +100,7 @@ class Viewer:
         self._frame_dt = self._default_frame_dt
         self._message = b""
         self._repack()
-        self._server: http.server.ThreadingHTTPServer | None = None
+        self._server: Server | None = None
         self._thread: threading.Thread | None = None
 
     # -- what is shown -------------------------------------------------------------------------------
@@ -207,22 +206,44 @@ class Viewer:
 
     # -- the server ----------------------------------------------------------------------------------
 
-    def serve(self, port: int = 8080, host: str = "127.0.0.1") -> str:
+    def serve(
+        self,
+        port: int = 8080,
+        host: str = "127.0.0.1",
+        *,
+        allowed_hosts: Sequence[str] = (),
+        limits: ServerLimits | None = None,
+    ) -> str:
         """Start serving in a background (daemon) thread and return the page's URL at once.
 
         Args:
             port: TCP port; 0 picks a free one (see `port`).
             host: address to bind. The default serves this machine only; pass e.g. ``"0.0.0.0"`` to let
                 other machines connect (the server has no authentication).
+            allowed_hosts: further names the page may be opened under, as ``name`` or ``name:port``
+                (e.g. this machine's DNS name when serving other machines, or the local port of a
+                tunnel). Loopback names, the bound host and the IP address a client connected to are
+                always accepted; requests naming any other host in ``Host`` get 421 (see
+                `energysim.viewer.hosts`).
+            limits: time, size and connection limits; default `ServerLimits()`.
 
-        Raises RuntimeError if already serving, OSError if the port is taken.
+        Raises RuntimeError if already serving, OSError if the port is taken, ValueError or TypeError
+        for a bad `port`, `allowed_hosts` entry or `limits`.
         """
         if self._server is not None:
             raise RuntimeError(f"already serving at {self.url}; call stop() first")
-        if not isinstance(port, int) or not 0 <= port <= 65535:
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
             raise ValueError(f"port must be an integer in [0, 65535], got {port!r}")
+        if not isinstance(host, str):
+            raise TypeError(f"host must be a string such as '127.0.0.1', got {host!r}")
+        if limits is None:
+            limits = ServerLimits()
+        elif not isinstance(limits, ServerLimits):
+            raise TypeError(f"limits must be a ServerLimits, got {type(limits).__name__}")
+        if isinstance(allowed_hosts, str):
+            raise TypeError(f"allowed_hosts must be a list of host names, got the string {allowed_hosts!r}")
         try:
-            server = _Server((host, port), _Handler, self)
+            server = Server((host, port), self._resource, limits, tuple(allowed_hosts))
         except OSError as err:
             if err.errno == errno.EADDRINUSE:
                 raise OSError(err.errno, f"port {port} on {host} is in use; pick another or port=0") from err
@@ -236,7 +257,8 @@ class Viewer:
         return self.url
 
     def stop(self) -> None:
-        """Stop serving and close the listening socket, so the port can be bound again at once.
+        """Stop serving, end every open connection and close the listening socket, so the port can be
+        bound again at once.
 
         Safe to call when not serving. Pages already open keep their last trajectory and show that the
         server is gone.
@@ -245,10 +267,22 @@ class Viewer:
         if server is None:
             return
         server.shutdown()
-        server.server_close()
+        server.close()
         if thread is not None:
             thread.join()
         self._server, self._thread = None, None
+
+    def _resource(self, path: str) -> tuple[bytes, str, str] | None:
+        """``(body, content type, cache-control)`` served at URL `path`, or None (404)."""
+        if path in self._assets:
+            body, kind = self._assets[path]
+            return body, kind, "no-cache"
+        if path == "/trajectory.bin":
+            return self.trajectory_bytes(), "application/octet-stream", "no-store"
+        if path == "/version":
+            body = json.dumps({"session": self._session, "version": self.version}).encode()
+            return body, "application/json", "no-store"
+        return None
 
     @property
     def serving(self) -> bool:
@@ -291,74 +325,3 @@ class Viewer:
     def __repr__(self) -> str:
         where = self.url if self.serving else "not serving"
         return f"Viewer({self._surface.faces.shape[0]} faces, version {self.version}, {where})"
-
-
-class _Server(http.server.ThreadingHTTPServer):
-    """One thread per connection; threads do not keep the process alive, and errors go to logging."""
-
-    daemon_threads = True
-    allow_reuse_address = True
-
-    def __init__(self, address: tuple[str, int], handler: type, viewer: Viewer) -> None:
-        self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
-        self.viewer = viewer
-        super().__init__(address, handler)
-
-    def handle_error(self, request: Any, client_address: Any) -> None:
-        # A browser closing a tab mid-download is routine; anything else is a bug worth a traceback.
-        logger.exception("viewer: error while serving %s", client_address)
-
-
-class _Handler(http.server.BaseHTTPRequestHandler):
-    server: _Server
-    server_version = "energysim-viewer"
-    sys_version = ""
-
-    def do_GET(self) -> None:  # noqa: N802 - http.server's naming
-        self._respond(send_body=True)
-
-    def do_HEAD(self) -> None:  # noqa: N802
-        self._respond(send_body=False)
-
-    def _respond(self, send_body: bool) -> None:
-        # Exact match of the path (query ignored) against fixed names: no path is ever joined or
-        # resolved, so "..", "%2e%2e", "//etc/passwd" and absolute-form targets all miss and get 404.
-        path = urlsplit(self.path).path
-        viewer = self.server.viewer
-        if path in viewer._assets:
-            body, kind = viewer._assets[path]
-            cache = "no-cache"
-        elif path == "/trajectory.bin":
-            body, kind, cache = viewer.trajectory_bytes(), "application/octet-stream", "no-store"
-        elif path == "/version":
-            body = json.dumps({"session": viewer._session, "version": viewer.version}).encode()
-            kind, cache = "application/json", "no-store"
-        else:
-            body, kind, cache = b"not found\n", "text/plain; charset=utf-8", "no-store"
-            self._send(404, body, kind, cache, send_body)
-            return
-        self._send(200, body, kind, cache, send_body)
-
-    def _send(self, status: int, body: bytes, kind: str, cache: str, send_body: bool) -> None:
-        try:
-            self.send_response(status)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", cache)
-            self.send_header("X-Content-Type-Options", "nosniff")
-            self.end_headers()
-            if send_body:
-                self.wfile.write(body)
-        except _DISCONNECTS:
-            logger.debug("viewer: client %s went away", self.client_address)
-            self.close_connection = True
-
-    def handle_one_request(self) -> None:
-        # Disconnects can also surface while the request line is read; they end this connection only.
-        try:
-            super().handle_one_request()
-        except _DISCONNECTS:
-            self.close_connection = True
-
-    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - http.server's signature
-        logger.debug("viewer %s: " + format, self.address_string(), *args)
