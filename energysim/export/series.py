@@ -32,6 +32,7 @@ import os
 import re
 import socket
 import tempfile
+import weakref
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
@@ -53,13 +54,16 @@ logger = logging.getLogger(__name__)
 
 MARKER_NAME = ".energysim-series.json"
 _MARKER_FORMAT = "energysim.vtk_series"
+# Series folders of this process whose `VTKSeries` is still alive: another series must not take them
+# for the leftovers of a crash, although the marker names this (running) process.
+_LIVE_FOLDERS: set[str] = set()
 
 
 def _frame_pattern(name: str) -> re.Pattern[str]:
     """Files the library writes into a series folder: frames and the temporaries of atomic writes."""
     stem = re.escape(name)
     frames = rf"{stem}_\d{{5}}\.vtu|\.{stem}_\d{{5}}\..+\.tmp\.vtu"
-    return re.compile(rf"{frames}|\.\.energysim-series\..+\.tmp\.json")
+    return re.compile(rf"{frames}|\.{stem}\..+\.tmp\.pvd|\.\.energysim-series\..+\.tmp\.json")
 
 
 def _read_marker(folder: Path) -> dict[str, Any] | None:
@@ -73,13 +77,13 @@ def _read_marker(folder: Path) -> dict[str, Any] | None:
     return marker
 
 
-def _writer_has_ended(marker: Mapping[str, Any]) -> bool:
-    """Whether the process that wrote a series folder is known to have ended (unknown: it has not)."""
+def _writer_has_ended(folder: Path, marker: Mapping[str, Any]) -> bool:
+    """Whether the series writing `folder` is known to be gone (unknown: it is not)."""
     pid = marker.get("pid")
     if marker.get("host") != socket.gethostname() or not isinstance(pid, int) or pid <= 0:
         return False
     if pid == os.getpid():
-        return False
+        return os.path.abspath(folder) not in _LIVE_FOLDERS
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -159,6 +163,9 @@ class VTKSeries:
             self.series_folder = Path(tempfile.mkdtemp(prefix=f"{name}.", dir=self.folder))
         except PermissionError as err:
             raise PermissionError(f"folder {str(self.folder)!r} is not writable: {err.strerror}") from err
+        key = os.path.abspath(self.series_folder)
+        _LIVE_FOLDERS.add(key)
+        weakref.finalize(self, _LIVE_FOLDERS.discard, key)
         try:
             os.chmod(self.series_folder, apply_umask(0o777))  # mkdtemp makes it private (0700)
             host = socket.gethostname()
@@ -185,10 +192,14 @@ class VTKSeries:
     def __exit__(
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
-        if kind is None:
-            self.commit()
-        else:
+        if kind is not None:
             self.discard()
+            return
+        try:
+            self.commit()
+        except BaseException:
+            self.discard()  # keeps the frames if the .pvd already lists them
+            raise
 
     def write(
         self,
@@ -238,7 +249,10 @@ class VTKSeries:
             raise ValueError(f"series {self.name!r} in {self.folder} has no frames: nothing to commit")
         fsync_folder(self.series_folder)  # the frames' names are on disk before the .pvd lists them
         previous = _listed_folders(self.pvd_path) - {self.series_folder}
-        write_pvd(self.pvd_path, [(t, path.relative_to(self.folder)) for t, path in self.frames])
+        # The temporary .pvd is made in the series folder, so a crash before the rename leaves it
+        # only where the library recognises it as its own.
+        entries = [(t, path.relative_to(self.folder)) for t, path in self.frames]
+        write_pvd(self.pvd_path, entries, temp_folder=self.series_folder)
         logger.info("wrote %s (%d frames in %s)", self.pvd_path, len(self.frames), self.series_folder.name)
         for old in sorted(previous):
             _remove_series_folder(old, self.name)
@@ -259,7 +273,9 @@ class VTKSeries:
             if candidate in listed or not candidate.is_dir() or candidate.is_symlink():
                 continue
             marker = _read_marker(candidate)
-            if marker is not None and marker.get("name") == self.name and _writer_has_ended(marker):
+            if marker is None or marker.get("name") != self.name:
+                continue
+            if _writer_has_ended(candidate, marker):
                 logger.info("removing %s, left by an export that did not finish", candidate)
                 _remove_series_folder(candidate, self.name)
 

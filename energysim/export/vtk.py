@@ -144,15 +144,20 @@ def fsync_folder(folder: str | os.PathLike[str]) -> None:
 
 
 @contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path``, on error it is removed.
+def atomic_output(
+    path: str | os.PathLike[str], temp_folder: str | os.PathLike[str] | None = None
+) -> Iterator[Path]:
+    """Yield a temporary path; on success it replaces ``path``, on error it is removed.
 
-    The temporary name keeps the destination's suffix, since some writers pick the format from it.
+    The temporary file is made in `temp_folder` (default: the folder of ``path``; it must be on the same
+    file system, for the rename to be atomic). Its name keeps the destination's suffix, since some
+    writers pick the format from it.
     """
     dest = Path(path)
     prepare_folder(dest.parent, f"the folder of {dest.name}")
+    temp_dir = dest.parent if temp_folder is None else Path(temp_folder)
     try:
-        fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}")
+        fd, tmp_name = tempfile.mkstemp(dir=temp_dir, prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}")
     except PermissionError as err:
         message = f"cannot write {str(dest)!r}: its folder is not writable ({err.strerror})"
         raise PermissionError(message) from err
@@ -207,13 +212,19 @@ def write_vtu(
     return dest
 
 
-def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str | os.PathLike[str]]]) -> Path:
+def write_pvd(
+    path: str | os.PathLike[str],
+    entries: Sequence[tuple[float, str | os.PathLike[str]]],
+    *,
+    temp_folder: str | os.PathLike[str] | None = None,
+) -> Path:
     """Write a ParaView collection (``.pvd``) listing ``(time, file)`` pairs, atomically.
 
     Args:
         path: destination ``.pvd`` file.
         entries: `(time, file)` with strictly increasing finite times (simulation time unit, usually s);
             relative files are taken relative to the pvd's folder, absolute ones are made relative to it.
+        temp_folder: where the temporary file is written before the rename (as in `atomic_output`).
     """
     dest = Path(path)
     lines = [
@@ -235,6 +246,6 @@ def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str |
         # repr() round-trips the float exactly; posix separators keep the file portable.
         lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f.as_posix())}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
-    with atomic_output(dest) as tmp:
+    with atomic_output(dest, temp_folder) as tmp:
         tmp.write_text("\n".join(lines), encoding="utf-8")
     return dest
