@@ -24,6 +24,7 @@ it has ended.
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import json
 import logging
@@ -82,6 +83,8 @@ def _writer_has_ended(folder: Path, marker: Mapping[str, Any]) -> bool:
     pid = marker.get("pid")
     if marker.get("host") != socket.gethostname() or not isinstance(pid, int) or pid <= 0:
         return False
+    if os.name != "posix":
+        return False  # os.kill(pid, 0) would end the process there rather than probe it
     if pid == os.getpid():
         return os.path.abspath(folder) not in _LIVE_FOLDERS
     try:
@@ -115,7 +118,7 @@ def _remove_series_folder(folder: Path, name: str) -> None:
 
     The marker goes last, so an interrupted removal still leaves a folder recognisably the library's.
     """
-    marker = _read_marker(folder)
+    marker = None if folder.is_symlink() else _read_marker(folder)
     if marker is None or marker.get("name") != name:
         return
     pattern = _frame_pattern(name)
@@ -128,7 +131,8 @@ def _remove_series_folder(folder: Path, name: str) -> None:
     except OSError as err:
         # The new series is already in place; what is left here is only clutter, never a loss.
         others = sorted(p.name for p in folder.iterdir()) if folder.is_dir() else []
-        logger.warning("left %s in place (%s); it still holds %s", folder, err.strerror or err, others[:5])
+        level = logging.INFO if err.errno == errno.ENOTEMPTY else logging.WARNING
+        logger.log(level, "left %s in place (%s); it holds %s", folder, err.strerror or err, others[:5])
 
 
 class VTKSeries:
