@@ -124,7 +124,8 @@ def simulate(
     """Step `state` for `seconds` (rounded to whole steps), recording `observe(x, v)` after every step.
 
     Saves every `frames_every`-th state and the last one; with `out`, writes them as VTK frames
-    (``velocity`` point data, ``energy_density`` cell data) and a ``frame.pvd`` into `out`. With
+    (``velocity`` point data, ``energy_density`` cell data) and a ``frame.pvd`` into `out`, which
+    lists them once the run is complete (an older series stays until then). With
     `action`, the step from t − h to t is taken with `action(t)` (t in s): implicit Euler balances
     the forces at the end of the step, so that is where the muscles' command belongs.
     """
@@ -157,6 +158,8 @@ def simulate(
         state = result.state
         stats.append(result.stats)
         record(k, state)
+    if series is not None:
+        series.commit()  # the .pvd switches to the new frames only now that all are written
 
     frame_steps = torch.tensor([k for k, _, _ in frames])
     return Rollout(

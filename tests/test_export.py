@@ -111,7 +111,8 @@ def test_vtk_series_read_back_with_pyvista(tmp_path: Path) -> None:
     frames = [v + np.array([0.0, -0.3 * k, 0.1 * k]) for k in range(3)]
     for t, f in zip(times, frames, strict=True):
         series.write(torch.tensor(t), torch.tensor(f), point_data={"height": f[:, 1]})
-    assert series.pvd_path == tmp_path / "run" / "vtk" / "body.pvd"
+    assert not series.pvd_path.exists()  # published only on commit
+    assert series.commit() == tmp_path / "run" / "vtk" / "body.pvd"
     assert [t for t, _ in series.frames] == times
     assert [p.name for _, p in series.frames] == ["body_00000.vtu", "body_00001.vtu", "body_00002.vtu"]
 
@@ -142,26 +143,30 @@ def test_write_vtu_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     assert not (tmp_path / "new.vtu").exists()
 
 
-def test_vtk_series_failed_frame_leaves_pvd_with_complete_frames(tmp_path: Path, monkeypatch) -> None:
+def test_vtk_series_failed_frame_leaves_no_file_and_can_be_retried(tmp_path: Path, monkeypatch) -> None:
     v, cells = _cube_tets()
     series = VTKSeries(tmp_path, cells)
     series.write(0.0, v)
     series.write(0.5, v + 1.0)
+    series.commit()
     pvd_before = series.pvd_path.read_bytes()
+    files_before = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
     with monkeypatch.context() as mp:
         mp.setattr(meshio, "write", _failing_write)
         with pytest.raises(RuntimeError):
             series.write(1.0, v + 2.0)
     assert series.pvd_path.read_bytes() == pvd_before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.pvd", "frame_00000.vtu", "frame_00001.vtu"]
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == files_before
     assert len(series.frames) == 2
     # the next write retries the same index and the series goes on
     assert series.write(1.0, v + 2.0).name == "frame_00002.vtu"
+    series.commit()
     sets = ET.parse(series.pvd_path).getroot().findall("./Collection/DataSet")
+    folder = series.series_folder.name
     assert [(float(d.get("timestep")), d.get("file")) for d in sets] == [
-        (0.0, "frame_00000.vtu"),
-        (0.5, "frame_00001.vtu"),
-        (1.0, "frame_00002.vtu"),
+        (0.0, f"{folder}/frame_00000.vtu"),
+        (0.5, f"{folder}/frame_00001.vtu"),
+        (1.0, f"{folder}/frame_00002.vtu"),
     ]
 
 
@@ -375,22 +380,24 @@ def test_render_rejects_bad_input(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_new_series_removes_stale_frames_of_the_same_name(tmp_path):
-    import numpy as np
-
+def test_a_new_series_replaces_the_old_one_of_the_same_name_only(tmp_path):
     from energysim.export import VTKSeries
 
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
     cells = np.array([[0, 1, 2, 3]])
-    long_run = VTKSeries(tmp_path, cells)
-    for k in range(3):
-        long_run.write(0.1 * k, vertices)
-    other = VTKSeries(tmp_path, cells, name="other")
-    other.write(0.0, vertices)
-    short_run = VTKSeries(tmp_path, cells)
-    short_run.write(0.0, vertices)
-    assert sorted(p.name for p in tmp_path.glob("frame_*.vtu")) == ["frame_00000.vtu"]
-    assert (tmp_path / "other_00000.vtu").exists()
+    with VTKSeries(tmp_path, cells) as long_run:
+        for k in range(3):
+            long_run.write(0.1 * k, vertices)
+    with VTKSeries(tmp_path, cells, name="other") as other:
+        other.write(0.0, vertices)
+    with VTKSeries(tmp_path, cells) as short_run:
+        short_run.write(0.0, vertices)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.glob("frame*/frame_*.vtu")) == [
+        f"{short_run.series_folder.name}/frame_00000.vtu"
+    ]
+    assert not long_run.series_folder.exists()
+    assert (other.series_folder / "other_00000.vtu").exists()
+    assert len(_frames(other.pvd_path)) == 1
 
 
 # ---------------------------------------------------------------------------------------------- rollouts
@@ -440,8 +447,10 @@ def test_export_rollout_round_trips_positions_velocities_and_rigid_motions(tmp_p
     assert pvd == tmp_path / "run" / "frame.pvd"
     listed = _frames(pvd)
     assert [t for t, _ in listed] == times  # every frame, with its exact time
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(
-        ["frame.pvd"] + [p.name for _, p in listed]
+    (series_folder,) = {p.parent for _, p in listed}
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(["frame.pvd", series_folder.name])
+    assert sorted(p.name for p in series_folder.iterdir()) == sorted(
+        [".energysim-series.json"] + [p.name for _, p in listed]
     )
     x, v = scene.split_state(states)
     n, m = scene.num_vertices, scene.mesh.num_elements

@@ -41,7 +41,7 @@ def _check_series(folder: Path, frame_steps: list[int], num_vertices: int, num_c
     assert pvd.is_file()
     reader = pyvista.get_reader(str(pvd))
     np.testing.assert_allclose(reader.time_values, [k * H for k in frame_steps], rtol=0, atol=1e-12)
-    assert len(list(folder.glob("frame_*.vtu"))) == len(frame_steps)
+    assert len(list(folder.glob("frame.*/frame_*.vtu"))) == len(frame_steps)
     reader.set_active_time_value(reader.time_values[-1])
     grid = reader.read()[0]
     assert grid.n_points == num_vertices and grid.n_cells == num_cells

@@ -8,7 +8,8 @@ called.
 
 from .render import render_gif, render_mp4, render_png
 from .rollout_vtk import element_activation, export_rollout, vertex_spring_activation
-from .vtk import VTKSeries, write_pvd, write_vtu
+from .series import VTKSeries
+from .vtk import write_pvd, write_vtu
 
 __all__ = [
     "VTKSeries",

@@ -22,7 +22,7 @@ from energysim.energies import ActuatedSprings, NeoHookean
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.viewer.scalars import strain_energy_density
 
-from .vtk import VTKSeries
+from .series import VTKSeries
 
 if TYPE_CHECKING:
     from energysim.scene import Scene
@@ -31,10 +31,16 @@ if TYPE_CHECKING:
 def _stack(values: Tensor | Sequence[Tensor], name: str) -> Tensor:
     if isinstance(values, Tensor):
         return values.detach()
-    values = list(values)
+    values = [torch.as_tensor(v).detach() for v in values]
     if not values:
         raise ValueError(f"{name} is empty")
-    return torch.stack([torch.as_tensor(v).detach() for v in values])
+    for k, value in enumerate(values):
+        if value.shape != values[0].shape:
+            raise ValueError(
+                f"{name}[{k}] has shape {tuple(value.shape)}, {name}[0] has {tuple(values[0].shape)}: "
+                "all must match"
+            )
+    return torch.stack(values)
 
 
 def _per_state_actions(actions: Tensor, num_states: int) -> Tensor:
@@ -124,14 +130,20 @@ def export_rollout(
     ``displacement`` from the rest shape (m), and when the scene has the terms for them cell data
     ``strain_energy_density`` (J/m³, J/m² per metre of depth in 2D; `NeoHookean`), ``actuator`` and
     ``activation`` (`FibreMuscles`; actuator −1: passive) and point data ``spring_activation``
-    (`ActuatedSprings`). Activations need `actions`; without them they are left out. Files are
-    written atomically, frame by frame, and an older series of the same name in `folder` is replaced.
+    (`ActuatedSprings`). Activations need `actions`; without them they are left out.
+
+    The frames go into a new folder ``{name}.<random>/`` beside the ``.pvd`` (see
+    `energysim.export.series`); the ``.pvd`` is switched to them in one atomic rename once all are on
+    disk, and only then are the frames of an older series of the same name removed. So `folder` holds,
+    at every instant, either the complete older series or the complete new one, even if the export
+    fails or the process is killed; files the library did not write are never removed. Every input is
+    checked before anything is written.
 
     Args:
         scene: the model the states belong to.
         states: F states, a stack `[F, 2·num_dofs]` or a list of `[2·num_dofs]` (one batch entry:
             index a batched rollout first).
-        folder: output folder (created).
+        folder: output folder (created with its parents).
         actions: `[F − 1, a]` (one per step, as `energysim.rollout` takes them: frame k shows the action
             of the step that ended there, frame 0 zero) or `[F, a]` (one per state).
         times: time of each state in s, shape `[F]`, strictly increasing; default k · `scene.dt`.
@@ -139,18 +151,24 @@ def export_rollout(
         name: file stem.
 
     Raises:
-        ValueError: no states, states, actions or times of the wrong shape, non-finite states, `every` < 1.
+        ValueError: no states, states, actions or times of the wrong shape, non-finite states, actions
+            or times, `every` < 1.
+        NotADirectoryError: `folder` (or a folder above it) is a file.
+        PermissionError: `folder` cannot be written.
     """
     states = _stack(states, "states")
-    if states.ndim != 2:
+    if states.ndim != 2 or states.shape[-1] != 2 * scene.num_dofs:
         raise ValueError(
-            f"states must have shape [F, {2 * scene.num_dofs}] (or be a list of [{2 * scene.num_dofs}]); "
-            f"got {tuple(states.shape)}: index one batch entry of a batched rollout first"
+            f"states must have shape [F, {2 * scene.num_dofs}] or be a list of [{2 * scene.num_dofs}] "
+            f"(positions then velocities of {scene.num_vertices} vertices in {scene.dim}D), "
+            f"got {tuple(states.shape)}; for a batched rollout index one batch entry first"
         )
     if states.shape[0] == 0:
         raise ValueError("states is empty: nothing to export")
     if not (isinstance(every, int) and every >= 1):
         raise ValueError(f"every must be an integer >= 1, got {every!r}")
+    if not (states.is_floating_point() or states.dtype in (torch.int32, torch.int64)):
+        raise ValueError(f"states must be real numbers, got dtype {states.dtype}")
     states = states.to(scene.vertex_mass)
     x, v = scene.split_state(states)
     frames = x.shape[0]
@@ -176,6 +194,10 @@ def export_rollout(
         cell_data["strain_energy_density"] = strain_energy_density(scene, states)
     if actions is not None:
         per_state = _per_state_actions(_stack(actions, "actions").to(x), frames)
+        if not torch.isfinite(per_state).all():
+            bad = torch.nonzero(~torch.isfinite(per_state).all(dim=1)).reshape(-1)
+            bad = bad - (per_state.shape[0] - len(actions))  # rows of `actions` as given
+            raise ValueError(f"actions {bad[:10].tolist()} hold NaN or inf")
         fibre_activation = element_activation(scene, per_state)
         if fibre_activation is not None:
             cell_data["activation"] = fibre_activation
@@ -184,22 +206,24 @@ def export_rollout(
             point_data["spring_activation"] = spring_activation
     actuator = _element_actuators(scene)
 
-    series = VTKSeries(folder, scene.mesh.elements, name=name)
+    written = sorted({*range(0, frames, every), frames - 1})
     rest = scene.rest_positions
-    for k in sorted({*range(0, frames, every), frames - 1}):
-        frame_cells = {key: value[k] for key, value in cell_data.items()}
-        if actuator is not None:
-            frame_cells["actuator"] = actuator
-        series.write(
-            time_values[k],
-            x[k],
-            point_data={
-                "velocity": v[k],
-                "displacement": x[k] - rest,
-                **{key: value[k] for key, value in point_data.items()},
-            },
-            cell_data=frame_cells,
-        )
+    series = VTKSeries(folder, scene.mesh.elements, name=name)
+    with series:  # committed when every frame is on disk, discarded if anything goes wrong
+        for k in written:
+            frame_cells = {key: value[k] for key, value in cell_data.items()}
+            if actuator is not None:
+                frame_cells["actuator"] = actuator
+            series.write(
+                time_values[k],
+                x[k],
+                point_data={
+                    "velocity": v[k],
+                    "displacement": x[k] - rest,
+                    **{key: value[k] for key, value in point_data.items()},
+                },
+                cell_data=frame_cells,
+            )
     return series.pvd_path
 
 

@@ -1,13 +1,13 @@
-"""VTK output: single ``.vtu`` frames and ``.pvd`` time series for ParaView / pyvista.
+"""VTK output: single ``.vtu`` files and ``.pvd`` collections for ParaView / pyvista.
 
-Every file is written atomically (temporary file in the same folder, then :func:`os.replace`), so a crash
-mid-write leaves either the previous file or no file at the destination, never a truncated one. Inputs
-may be torch tensors or numpy arrays; this module never imports the solver.
+Every file is written atomically (temporary file in the same folder, flushed, then :func:`os.replace`,
+then the folder flushed), so a crash mid-write leaves either the previous file or no file at the
+destination, never a truncated one. Inputs may be torch tensors or numpy arrays; this module never
+imports the solver. Time series that replace an older one whole are in `energysim.export.series`.
 """
 
 from __future__ import annotations
 
-import glob
 import logging
 import math
 import os
@@ -105,15 +105,62 @@ def _check_data(data: Mapping[str, Any] | None, count: int, what: str) -> dict[s
     return out
 
 
-@contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path``, on error it is removed.
+def apply_umask(mode: int) -> int:
+    """`mode` with the process umask applied: the permissions a plain open() or mkdir() would give."""
+    return mode & ~_UMASK
 
-    The temporary name keeps the destination's suffix, since some writers pick the format from it.
+
+def prepare_folder(folder: str | os.PathLike[str], what: str = "folder") -> Path:
+    """Create `folder` with its parents if needed and return it; a clear error when that is impossible.
+
+    Raises:
+        NotADirectoryError: `folder`, or a folder above it, is a file.
+        PermissionError: `folder` cannot be created.
+    """
+    path = Path(folder)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"{what} {str(path)!r} is a file, expected a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as err:
+        blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), path)
+        raise NotADirectoryError(
+            f"{what} {str(path)!r} cannot be created: {str(blocking)!r} is a file, expected a folder"
+        ) from err
+    except PermissionError as err:
+        raise PermissionError(f"{what} {str(path)!r} cannot be created: {err.strerror}") from err
+    return path
+
+
+def fsync_folder(folder: str | os.PathLike[str]) -> None:
+    """Flush a folder's entries to disk, so a file renamed into it survives a power loss (POSIX only)."""
+    if os.name != "posix":
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_output(
+    path: str | os.PathLike[str], temp_folder: str | os.PathLike[str] | None = None
+) -> Iterator[Path]:
+    """Yield a temporary path; on success it replaces ``path``, on error it is removed.
+
+    The temporary file is made in `temp_folder` (default: the folder of ``path``; it must be on the same
+    file system, for the rename to be atomic). Its name keeps the destination's suffix, since some
+    writers pick the format from it.
     """
     dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}")
+    prepare_folder(dest.parent, f"the folder of {dest.name}")
+    temp_dir = dest.parent if temp_folder is None else Path(temp_folder)
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=temp_dir, prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}")
+    except PermissionError as err:
+        message = f"cannot write {str(dest)!r}: its folder is not writable ({err.strerror})"
+        raise PermissionError(message) from err
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -121,11 +168,12 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
         # Flush to disk before the rename so a power loss cannot leave a renamed but empty file.
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.chmod(tmp, apply_umask(0o666))
         os.replace(tmp, dest)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    fsync_folder(dest.parent)
 
 
 def write_vtu(
@@ -164,13 +212,19 @@ def write_vtu(
     return dest
 
 
-def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str | os.PathLike[str]]]) -> Path:
+def write_pvd(
+    path: str | os.PathLike[str],
+    entries: Sequence[tuple[float, str | os.PathLike[str]]],
+    *,
+    temp_folder: str | os.PathLike[str] | None = None,
+) -> Path:
     """Write a ParaView collection (``.pvd``) listing ``(time, file)`` pairs, atomically.
 
     Args:
         path: destination ``.pvd`` file.
         entries: `(time, file)` with strictly increasing finite times (simulation time unit, usually s);
             relative files are taken relative to the pvd's folder, absolute ones are made relative to it.
+        temp_folder: where the temporary file is written before the rename (as in `atomic_output`).
     """
     dest = Path(path)
     lines = [
@@ -192,75 +246,6 @@ def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str |
         # repr() round-trips the float exactly; posix separators keep the file portable.
         lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f.as_posix())}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
-    with atomic_output(dest) as tmp:
+    with atomic_output(dest, temp_folder) as tmp:
         tmp.write_text("\n".join(lines), encoding="utf-8")
     return dest
-
-
-class VTKSeries:
-    """Writes one ``.vtu`` per frame plus a ``.pvd`` collection that lists (time, file).
-
-    ParaView and pyvista (``pyvista.get_reader(series.pvd_path)``) open the ``.pvd`` as a time series.
-    The collection is rewritten after each complete frame, so it never references a partial file.
-    Files of an earlier run in the same folder with the same ``name`` are overwritten frame by frame.
-
-    Args:
-        folder: output folder (created with its parents).
-        cells: connectivity `[m, 4]` (tetrahedra) or `[m, 3]` (triangles), shared by all frames.
-        name: file stem: frames are ``{name}_{k:05d}.vtu``, the collection ``{name}.pvd``.
-    """
-
-    def __init__(self, folder: str | os.PathLike[str], cells: Any, name: str = "frame") -> None:
-        if not name or any(s in name for s in ("/", "\\", os.sep)):
-            raise ValueError(f"name must be a non-empty file stem without path separators, got {name!r}")
-        self.folder = Path(folder)
-        self.name = name
-        self.cells = check_index_array(cells, None, (3, 4))
-        self.frames: list[tuple[float, Path]] = []
-        self.folder.mkdir(parents=True, exist_ok=True)
-        # A new series replaces an old one of the same name: frames from an earlier, longer run
-        # would otherwise linger beside the new .pvd and be mistaken for part of it.
-        for stale in self.folder.glob(f"{glob.escape(name)}_[0-9][0-9][0-9][0-9][0-9].vtu"):
-            stale.unlink()
-
-    @property
-    def pvd_path(self) -> Path:
-        """Path of the ``.pvd`` collection file."""
-        return self.folder / f"{self.name}.pvd"
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def write(
-        self,
-        time: float,
-        vertices: Any,
-        point_data: Mapping[str, Any] | None = None,
-        cell_data: Mapping[str, Any] | None = None,
-    ) -> Path:
-        """Write the next frame at ``time`` (strictly after the previous one) and update the ``.pvd``.
-
-        Args:
-            time: simulation time of the frame (usually s); tensors of one element are accepted.
-            vertices: positions `[n, 3]` or `[n, 2]`.
-            point_data, cell_data: as in :func:`write_vtu`.
-
-        Returns:
-            The path of the frame's ``.vtu`` file.
-        """
-        t_arr = to_numpy(time, "time")
-        if t_arr.size != 1:
-            raise ValueError(f"time must be a single number, got shape {list(t_arr.shape)}")
-        t = float(t_arr.reshape(()))
-        if not math.isfinite(t):
-            raise ValueError(f"time must be finite, got {t}")
-        if self.frames and t <= self.frames[-1][0]:
-            raise ValueError(f"time must increase from frame to frame, got {t} after {self.frames[-1][0]}")
-        frame_path = self.folder / f"{self.name}_{len(self.frames):05d}.vtu"
-        write_vtu(frame_path, vertices, self.cells, point_data, cell_data)
-        entries = [(ft, fp.name) for ft, fp in self.frames] + [(t, frame_path.name)]
-        write_pvd(self.pvd_path, entries)
-        # Only recorded once both files are in place: a failure above lets the next call retry index k.
-        self.frames.append((t, frame_path))
-        logger.debug("wrote frame %d (t = %g) to %s", len(self.frames) - 1, t, frame_path)
-        return frame_path
