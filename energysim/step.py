@@ -35,12 +35,6 @@ class StepResult:
     stats: SolverResult
 
 
-def _match_scene(scene: Scene, like: Tensor) -> None:
-    # device and dtype follow the state: move the scene's buffers the first time they differ
-    if scene.vertex_mass.dtype != like.dtype or scene.vertex_mass.device != like.device:
-        scene.to(dtype=like.dtype, device=like.device)
-
-
 def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
     if action is None:
         return None
@@ -499,6 +493,8 @@ def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None
     A body stiffens as it deforms, so this is where to start, not a guarantee: a step that blows up
     still raises `InstabilityError`. The shipped worm at rest: 2/ω_max = 0.71 ms, 32 substeps of
     1/60 s (with η = 30 Pa·s its viscous limit 1/γ_max is 0.70 ms: still 32)."""
+    if isinstance(x, Tensor):
+        scene = scene.matching(x)
     terms, _ = explicit.split_terms(list(scene.terms))
     x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
     act = None if action is None else _check_action(action, 1)
@@ -569,7 +565,8 @@ def step(
     x_prev, v_prev = scene.split_state(state)
     if not torch.isfinite(state).all():
         raise ValueError("state has non-finite entries")
-    _match_scene(scene, state)
+    # device and dtype follow the state, through a converted copy: the scene itself is unchanged
+    scene = scene.matching(state)
     action = _check_action(action, x_prev.shape[0])
     solver = solver or scene.solver
     parameters = differentiable_parameters([scene])
@@ -653,7 +650,7 @@ def solve_static(
         raise ValueError(
             f"x0 must have shape [{scene.num_vertices}, {scene.dim}] or [B, ...], got {tuple(x0.shape)}"
         )
-    _match_scene(scene, x0)
+    scene = scene.matching(x0)
     batched = x0.reshape(-1, scene.num_vertices, scene.dim).detach()
     objective = Objective(
         terms=list(scene.terms),
