@@ -35,11 +35,15 @@ class StepResult:
     stats: SolverResult
 
 
-def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
+def _check_action(action: Tensor | None, batch: int, like: Tensor | None = None) -> Tensor | None:
+    """`action` as `[batch, a]`, in the dtype and on the device of `like` (the state) where given:
+    a conversion autograd records, so the action's own tensor is neither changed nor cut off."""
     if action is None:
         return None
     if not isinstance(action, Tensor):
         action = torch.as_tensor(action)
+    if like is not None:
+        action = action.to(dtype=like.dtype, device=like.device)
     if action.ndim == 1:
         action = action.expand(batch, -1)
     if action.ndim != 2 or action.shape[0] != batch:
@@ -497,7 +501,7 @@ def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None
         scene = scene.matching(x)
     terms, _ = explicit.split_terms(list(scene.terms))
     x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
-    act = None if action is None else _check_action(action, 1)
+    act = None if action is None else _check_action(action, 1, x)
     limit = min(_stable_limits(scene, terms, x, act))
     return max(1, math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))) if math.isfinite(limit) else 1
 
@@ -567,7 +571,7 @@ def step(
         raise ValueError("state has non-finite entries")
     # device and dtype follow the state, through a converted copy: the scene itself is unchanged
     scene = scene.matching(state)
-    action = _check_action(action, x_prev.shape[0])
+    action = _check_action(action, x_prev.shape[0], state)
     solver = solver or scene.solver
     parameters = differentiable_parameters([scene])
     wants_grad = torch.is_grad_enabled() and (
@@ -656,7 +660,7 @@ def solve_static(
         terms=list(scene.terms),
         free=scene.free,
         residual_scale=scene.dt / scene.vertex_mass,
-        action=_check_action(action, batched.shape[0]),
+        action=_check_action(action, batched.shape[0], batched),
         anchor=batched,
     )
     result = (solver or scene.solver).minimize(objective, batched)
