@@ -168,18 +168,22 @@ class Scene(nn.Module):
         self.terms.append(term)
         return term
 
-    def matching(self, like: Tensor) -> Scene:
+    def matching(self, like: Tensor, what: str = "the state") -> Scene:
         """This scene in the dtype and on the device of `like` (a state or positions): the scene
         itself where they are its own, else a converted copy, kept and brought up to date with this
         scene on every call (`energysim.converted`). This scene is never changed, and gradients
         through the copy reach this scene's tensors that require grad.
+
+        Args:
+            like: a state `[2·num_dofs]` / `[B, 2·num_dofs]` or positions `[..., n, d]`.
+            what: how errors name `like`.
 
         Raises:
             TypeError: `like` or the scene is not float32 or float64 (half precision cannot hold
                 the physics).
             ValueError: a constant of the scene overflows or underflows in `like`'s dtype.
         """
-        check_dtype(like.dtype, "the state")
+        check_dtype(like.dtype, what)
         own = self.vertex_mass
         check_dtype(own.dtype, "the scene")
         if own.dtype == like.dtype and own.device == like.device:

@@ -498,7 +498,7 @@ def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None
     still raises `InstabilityError`. The shipped worm at rest: 2/ω_max = 0.71 ms, 32 substeps of
     1/60 s (with η = 30 Pa·s its viscous limit 1/γ_max is 0.70 ms: still 32)."""
     if isinstance(x, Tensor):
-        scene = scene.matching(x)
+        scene = scene.matching(x, "x")
     terms, _ = explicit.split_terms(list(scene.terms))
     x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
     act = None if action is None else _check_action(action, 1, x)
@@ -552,6 +552,10 @@ def step(
     function theorem) and keeps nothing of the optimizer's iterations; `"unrolled"` records Newton
     iterations instead (memory grows with them; a reference for checks). A solver with
     `strict=True` refuses to differentiate a step that did not converge; otherwise backward warns.
+
+    A state in another dtype or on another device than the scene is stepped with the scene's copy
+    in that dtype and on that device (`Scene.matching`); float16 and bfloat16 are refused. The step
+    changes nothing it is given: neither the scene, its terms and solver, nor `state` or `action`.
 
     Args:
         scene: the model.
@@ -654,7 +658,7 @@ def solve_static(
         raise ValueError(
             f"x0 must have shape [{scene.num_vertices}, {scene.dim}] or [B, ...], got {tuple(x0.shape)}"
         )
-    scene = scene.matching(x0)
+    scene = scene.matching(x0, "x0")
     batched = x0.reshape(-1, scene.num_vertices, scene.dim).detach()
     objective = Objective(
         terms=list(scene.terms),
