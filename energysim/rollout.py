@@ -2,12 +2,27 @@
 
 from __future__ import annotations
 
+import operator
+
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from energysim.scene import Scene
 from energysim.step import timestep
+
+
+def _count(value: object, name: str, *, allow_none: bool = False) -> int | None:
+    """`value` as an integer >= 0 (None passes where allowed); bools and fractions are refused."""
+    if value is None and allow_none:
+        return None
+    try:
+        count = None if isinstance(value, bool) else operator.index(value)
+    except TypeError:
+        count = None
+    if count is None or count < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    return count
 
 
 def rollout(
@@ -33,14 +48,18 @@ def rollout(
         checkpoint_every: steps per checkpointed segment; 0 keeps every step's tensors.
         grad_mode: "implicit" or "unrolled" (see `energysim.step`).
     """
+    steps = _count(steps, "steps", allow_none=True)
+    checkpoint_every = _count(checkpoint_every, "checkpoint_every")
     if actions is not None:
+        if not isinstance(actions, Tensor):
+            actions = torch.as_tensor(actions)
+        if actions.ndim not in (2, 3):
+            raise ValueError(f"actions must have shape [T, a] or [T, B, a], got {tuple(actions.shape)}")
         if steps is not None and steps != actions.shape[0]:
             raise ValueError(f"steps={steps} but actions has {actions.shape[0]} rows")
         steps = actions.shape[0]
-    if steps is None or steps < 0:
+    if steps is None:
         raise ValueError("give `steps` (>= 0) or `actions`")
-    if checkpoint_every < 0:
-        raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
 
     def advance(current: Tensor, first: int, count: int, segment_actions: Tensor | None) -> list[Tensor]:
         out = []

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
+from energysim.converted import ConvertedMirror, check_dtype
 from energysim.energies.base import EnergyTerm, check_positive
 from energysim.energies.gravity import Gravity
+from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
 from energysim.optim import NewtonCG, Solver
 
@@ -59,11 +62,23 @@ class Scene(nn.Module):
         self.integrator = integrator
         self.substeps = substeps
         if vertex_mass is None:
-            # density may be a tensor that requires grad (material identification): check its value
-            checked = torch.as_tensor(density).detach()
+            # density may be a tensor that requires grad (material identification): check its value,
+            # in float64 (a Python float read as float32 would turn 1e-300 into 0)
+            if not isinstance(density, Tensor):
+                if isinstance(density, bool) or not isinstance(density, (int, float)):
+                    raise TypeError(f"density must be a number in kg/m^3, got {density!r}")
+                density = torch.tensor(float(density), dtype=torch.float64)
+            checked = density.detach()
             if not bool(torch.isfinite(checked).all() & (checked > 0).all()):
-                raise ValueError(f"density must be finite and > 0 kg/m^3, got {density}")
-            vertex_mass = density * mesh.vertex_rest_volume()
+                raise ValueError(f"density must be finite and > 0 kg/m^3, got {checked.tolist()}")
+            vertex_mass = density * mesh.vertex_rest_volume().to(torch.float64)
+            underflow = torch.nonzero(vertex_mass.detach() == 0).reshape(-1)
+            if underflow.numel():
+                raise ValueError(
+                    f"density {checked.tolist()} kg/m^3 gives vertex masses (density × rest volume) that "
+                    f"underflow to 0 kg in float64 at vertices {underflow[:10].tolist()}: the density is "
+                    "too small to represent; give a larger one"
+                )
         vertex_mass = torch.as_tensor(vertex_mass, dtype=torch.float64)
         if tuple(vertex_mass.shape) != (mesh.num_vertices,):
             raise ValueError(
@@ -74,6 +89,8 @@ class Scene(nn.Module):
         self.register_buffer("rest_positions", mesh.vertices.clone())
         self.register_buffer("fixed", torch.zeros(mesh.num_vertices, dtype=torch.bool))
         self.terms = nn.ModuleList()
+        # copies in the dtypes and on the devices of the states stepped so far (`matching`)
+        self._converted: dict[tuple[torch.dtype, torch.device], ConvertedMirror] = {}
         self.solver: Solver = solver if solver is not None else NewtonCG(tol=1e-5)
         if gravity is not None:
             self.add(Gravity(gravity))
@@ -134,19 +151,60 @@ class Scene(nn.Module):
         """Bind `term` to this scene's mesh and add it to the step objective; returns it."""
         if not isinstance(term, EnergyTerm):
             raise TypeError(f"expected an EnergyTerm, got {type(term).__name__}")
+        owner = term.scene
+        if owner is self:
+            raise ValueError(
+                f"this {type(term).__name__} is already in this scene: a term is added once (to count "
+                "it twice, scale its constants)"
+            )
+        if owner is not None:
+            raise ValueError(
+                f"this {type(term).__name__} already belongs to another scene, and its rest data is "
+                "bound to that scene's mesh: construct a new term for this scene"
+            )
         term.bind(self.mesh, self.vertex_mass)
         term.to(dtype=self.vertex_mass.dtype, device=self.vertex_mass.device)
+        term.mark_added(self)
         self.terms.append(term)
         return term
 
+    def matching(self, like: Tensor, what: str = "the state") -> Scene:
+        """This scene in the dtype and on the device of `like` (a state or positions): the scene
+        itself where they are its own, else a converted copy, kept and brought up to date with this
+        scene on every call (`energysim.converted`). This scene is never changed, and gradients
+        through the copy reach this scene's tensors that require grad.
+
+        Args:
+            like: a state `[2·num_dofs]` / `[B, 2·num_dofs]` or positions `[..., n, d]`.
+            what: how errors name `like`.
+
+        Raises:
+            TypeError: `like` or the scene is not float32 or float64 (half precision cannot hold
+                the physics).
+            ValueError: a constant of the scene overflows or underflows in `like`'s dtype.
+        """
+        check_dtype(like.dtype, what)
+        own = self.vertex_mass
+        check_dtype(own.dtype, "the scene")
+        if own.dtype == like.dtype and own.device == like.device:
+            return self
+        key = (like.dtype, like.device)
+        mirror = self._converted.get(key)
+        if mirror is None:
+            mirror = self._converted[key] = ConvertedMirror(like.dtype, like.device)
+        copy = mirror.of(self)
+        copy.__dict__["_converted"] = {}
+        return copy
+
     def fix(self, vertex_indices: Sequence[int] | Tensor) -> None:
-        """Pin vertices where the state puts them: they are eliminated from every solve."""
-        index = torch.as_tensor(vertex_indices, dtype=torch.int64, device=self.fixed.device).reshape(-1)
-        bad = (index < 0) | (index >= self.num_vertices)
-        if bad.any():
-            raise ValueError(
-                f"vertex indices {index[bad][:10].tolist()} are outside [0, {self.num_vertices})"
-            )
+        """Pin vertices where the state puts them: they are eliminated from every solve.
+
+        Args:
+            vertex_indices: integer indices in [0, n) (a list, NumPy array or tensor), or a boolean
+                mask of shape `[n]` that is True at the vertices to pin.
+        """
+        index = as_indices(vertex_indices, "vertex_indices", self.num_vertices, allow_mask=True)
+        index = index.reshape(-1).to(self.fixed.device)
         fixed = self.fixed.clone()
         fixed[index] = True
         self.fixed = fixed
@@ -159,8 +217,16 @@ class Scene(nn.Module):
         Args:
             positions: shape `[n, d]` in m; default the rest positions.
             velocities: shape `[n, d]` in m/s; default zero.
-            batch_size: stack B copies.
+            batch_size: stack B ≥ 1 copies; None: one unbatched state.
         """
+        if batch_size is not None:
+            try:
+                count = None if isinstance(batch_size, bool) else operator.index(batch_size)
+            except TypeError:
+                count = None
+            if count is None or count < 1:
+                raise ValueError(f"batch_size must be an integer >= 1 or None, got {batch_size!r}")
+            batch_size = count
         x = self.rest_positions if positions is None else torch.as_tensor(positions).to(self.rest_positions)
         v = torch.zeros_like(x) if velocities is None else torch.as_tensor(velocities).to(x)
         for name, value in (("positions", x), ("velocities", v)):

@@ -35,17 +35,15 @@ class StepResult:
     stats: SolverResult
 
 
-def _match_scene(scene: Scene, like: Tensor) -> None:
-    # device and dtype follow the state: move the scene's buffers the first time they differ
-    if scene.vertex_mass.dtype != like.dtype or scene.vertex_mass.device != like.device:
-        scene.to(dtype=like.dtype, device=like.device)
-
-
-def _check_action(action: Tensor | None, batch: int) -> Tensor | None:
+def _check_action(action: Tensor | None, batch: int, like: Tensor | None = None) -> Tensor | None:
+    """`action` as `[batch, a]`, in the dtype and on the device of `like` (the state) where given:
+    a conversion autograd records, so the action's own tensor is neither changed nor cut off."""
     if action is None:
         return None
     if not isinstance(action, Tensor):
         action = torch.as_tensor(action)
+    if like is not None:
+        action = action.to(dtype=like.dtype, device=like.device)
     if action.ndim == 1:
         action = action.expand(batch, -1)
     if action.ndim != 2 or action.shape[0] != batch:
@@ -499,9 +497,11 @@ def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None
     A body stiffens as it deforms, so this is where to start, not a guarantee: a step that blows up
     still raises `InstabilityError`. The shipped worm at rest: 2/ω_max = 0.71 ms, 32 substeps of
     1/60 s (with η = 30 Pa·s its viscous limit 1/γ_max is 0.70 ms: still 32)."""
+    if isinstance(x, Tensor):
+        scene = scene.matching(x, "x")
     terms, _ = explicit.split_terms(list(scene.terms))
     x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
-    act = None if action is None else _check_action(action, 1)
+    act = None if action is None else _check_action(action, 1, x)
     limit = min(_stable_limits(scene, terms, x, act))
     return max(1, math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))) if math.isfinite(limit) else 1
 
@@ -553,6 +553,10 @@ def step(
     iterations instead (memory grows with them; a reference for checks). A solver with
     `strict=True` refuses to differentiate a step that did not converge; otherwise backward warns.
 
+    A state in another dtype or on another device than the scene is stepped with the scene's copy
+    in that dtype and on that device (`Scene.matching`); float16 and bfloat16 are refused. The step
+    changes nothing it is given: neither the scene, its terms and solver, nor `state` or `action`.
+
     Args:
         scene: the model.
         state: `[x.flatten(), v.flatten()]`, shape `[2·num_dofs]` or `[B, 2·num_dofs]`, in m and m/s.
@@ -569,8 +573,9 @@ def step(
     x_prev, v_prev = scene.split_state(state)
     if not torch.isfinite(state).all():
         raise ValueError("state has non-finite entries")
-    _match_scene(scene, state)
-    action = _check_action(action, x_prev.shape[0])
+    # device and dtype follow the state, through a converted copy: the scene itself is unchanged
+    scene = scene.matching(state)
+    action = _check_action(action, x_prev.shape[0], state)
     solver = solver or scene.solver
     parameters = differentiable_parameters([scene])
     wants_grad = torch.is_grad_enabled() and (
@@ -653,13 +658,13 @@ def solve_static(
         raise ValueError(
             f"x0 must have shape [{scene.num_vertices}, {scene.dim}] or [B, ...], got {tuple(x0.shape)}"
         )
-    _match_scene(scene, x0)
+    scene = scene.matching(x0, "x0")
     batched = x0.reshape(-1, scene.num_vertices, scene.dim).detach()
     objective = Objective(
         terms=list(scene.terms),
         free=scene.free,
         residual_scale=scene.dt / scene.vertex_mass,
-        action=_check_action(action, batched.shape[0]),
+        action=_check_action(action, batched.shape[0], batched),
         anchor=batched,
     )
     result = (solver or scene.solver).minimize(objective, batched)

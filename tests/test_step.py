@@ -239,6 +239,8 @@ def test_device_and_dtype_follow_the_state(dtype):
     state = scene.initial_state().to(dtype)
     new = es.timestep(scene, state)
     assert new.dtype == dtype
+    # the step ran on a copy in the state's dtype: the scene keeps its own
+    assert scene.vertex_mass.dtype == torch.float64 and scene.terms[1].youngs_modulus.dtype == torch.float64
     # one step of free fall from rest: every vertex moves by h² g
     _, v = scene.split_state(new)
     assert torch.allclose(v[0, :, 1], torch.full_like(v[0, :, 1], -9.81 * scene.dt), rtol=1e-5)

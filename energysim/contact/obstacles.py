@@ -21,6 +21,7 @@ from torch import Tensor
 from energysim.contact.barrier import barrier, barrier_derivatives, default_barrier_stiffness
 from energysim.contact.friction import LaggedFriction
 from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter, scatter_vertices
+from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
 from energysim.mesh.simplex import format_indices
 
@@ -91,7 +92,7 @@ class Obstacle(ElementEnergy):
         self._barrier_stiffness = barrier_stiffness
         self.friction_smoothing = float(friction_smoothing)
         self._vertices = (
-            None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64).reshape(-1)
+            None if vertices is None else as_indices(vertices, "vertices").reshape(-1)
         )
 
     # --- the shape -------------------------------------------------------------------------

@@ -9,6 +9,8 @@ products and Hessian blocks come from autograd in `energysim.derivatives`.
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor, nn
 
@@ -23,6 +25,18 @@ class EnergyTerm(nn.Module):
     """
 
     is_linear: bool = False
+
+    @property
+    def scene(self) -> nn.Module | None:
+        """The scene this term was added to (its rest data is bound to that scene's mesh), or None."""
+        owner = self.__dict__.get("_owner")
+        return None if owner is None else owner()
+
+    def mark_added(self, scene: nn.Module) -> None:
+        """Record that `scene` holds this term; called by `Scene.add`, which refuses a term that
+        another scene holds. A weak reference: a term keeps no scene alive."""
+        # stored past nn.Module.__setattr__, which would register the scene as a submodule
+        self.__dict__["_owner"] = weakref.ref(scene)
 
     def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
         """Build rest-state buffers from the scene's mesh; called once by `Scene.add`.

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from energysim.energies.springs import Springs
+from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
 
 
@@ -50,7 +50,7 @@ class ActuatedSprings(Springs):
         super().__init__(edges, stiffness, rest_length)
         if not 0 < max_contraction < 1:
             raise ValueError(f"max_contraction must lie in (0, 1), got {max_contraction}")
-        self.register_buffer("actuators", torch.as_tensor(actuators, dtype=torch.int64))
+        self.register_buffer("actuators", as_indices(actuators, "actuators", what="actuator"))
         self.max_contraction = max_contraction
         # a Python int, read on every energy evaluation: no device sync there
         self._num_actuators = int(self.actuators.max()) + 1 if self.actuators.numel() else 0

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
+from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
 
 
@@ -56,7 +57,7 @@ class Springs(ElementEnergy):
         rest_length: float | Tensor | None = None,
     ) -> None:
         super().__init__()
-        self._edges = None if edges is None else torch.as_tensor(edges, dtype=torch.int64)
+        self._edges = None if edges is None else as_indices(edges, "edges")
         self.register_buffer("stiffness", as_parameter(stiffness, "stiffness"))
         self._rest_length = None if rest_length is None else as_parameter(rest_length, "rest_length")
 
