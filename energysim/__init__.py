@@ -2,7 +2,12 @@
 
 One implicit-Euler step is the minimisation
 x_{n+1} = argmin_x ½h⁻²‖x − (x_n + h v_n)‖²_M + Σ_i E_i(x) by a pluggable optimizer.
+
+Installed as the distribution ``torch-energysim``; imported as ``energysim``.
 """
+
+# The one place the version is written: pyproject.toml reads it from here (setuptools' `attr`).
+__version__ = "0.1.0"
 
 from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereObstacle
 from energysim.creatures import CREATURES, Creature, load_creature
@@ -19,7 +24,7 @@ from energysim.energies import (
 )
 from energysim.explicit import InstabilityError
 from energysim.implicit import GradientError
-from energysim.mesh import SimplexMesh, TetMesh, TriMesh, load_mesh
+from energysim.mesh import MeshFileError, MeshFileNotFoundError, SimplexMesh, TetMesh, TriMesh, load_mesh
 from energysim.objective import Objective
 from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
 from energysim.rollout import rollout
@@ -50,6 +55,8 @@ __all__ = [
     "IMPLICIT_INTEGRATORS",
     "INTEGRATORS",
     "InstabilityError",
+    "MeshFileError",
+    "MeshFileNotFoundError",
     "Inertia",
     "NeoHookean",
     "NewtonCG",

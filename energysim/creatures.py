@@ -1,8 +1,10 @@
-"""The shipped soft creatures: voxel bodies with fibre muscles, read from meshes/.
+"""The shipped soft creatures: voxel bodies with fibre muscles, read from the package data in
+energysim/assets/creatures/.
 
 `scripts/make_creatures.py` makes every creature NAME as ``NAME.vtu`` (the rest mesh, x forward, y up, the
 lowest vertex at y = 0, with cell data ``actuator`` (−1 passive) and ``fibre``) beside ``NAME.json`` (a
-description, the suggested material, muscle and open-loop gait). `load_creature` reads them back.
+description, the suggested material, muscle and open-loop gait). `load_creature` reads them back through
+`importlib.resources`, so they load from a source tree, an installed wheel and a zipped package alike.
 """
 
 from __future__ import annotations
@@ -10,11 +12,13 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from importlib.resources import as_file, files
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import meshio
 import numpy as np
@@ -35,8 +39,14 @@ from energysim.mesh.io import (
 from energysim.optim import Solver
 from energysim.scene import Scene
 
+if TYPE_CHECKING:
+    from importlib.resources.abc import Traversable
+
 CREATURES = ("worm", "quadruped", "starfish", "jumper", "crawler2d", "walker2d")
 MESHES_ENV = "ENERGYSIM_MESHES"
+# the shipped files: package data of `energysim`, declared in pyproject.toml
+ASSETS_PACKAGE = "energysim"
+ASSETS_FOLDER = ("assets", "creatures")
 MAKE_SCRIPT = "scripts/make_creatures.py"
 STANDARD_GRAVITY = 9.81  # m/s², the creatures' scenes pull along −y
 
@@ -172,12 +182,38 @@ def resting_state(
     return torch.cat([x.flatten(-2), v.flatten(-2)], dim=-1)
 
 
-def default_meshes_dir() -> Path:
-    """Where creature files live: `$ENERGYSIM_MESHES` if set, else meshes/ at the repository root."""
+def shipped_meshes_dir() -> Traversable:
+    """The shipped creature files, energysim/assets/creatures/ in the package (a `pathlib.Path` unless the
+    package is imported from a zip archive)."""
+    folder = files(ASSETS_PACKAGE)
+    for part in ASSETS_FOLDER:
+        folder = folder.joinpath(part)
+    return folder
+
+
+def default_meshes_dir() -> Path | Traversable:
+    """Where `load_creature` looks by default: `$ENERGYSIM_MESHES` if set, else `shipped_meshes_dir()`."""
     override = os.environ.get(MESHES_ENV)
     if override:
         return Path(override)
-    return Path(__file__).resolve().parent.parent / "meshes"
+    return shipped_meshes_dir()
+
+
+@contextmanager
+def _local_files(folder: Path | Traversable, names: tuple[str, ...]) -> Iterator[tuple[Path, ...]]:
+    """Paths on disk for the files `names` in `folder`: the files themselves in a folder on disk, temporary
+    copies inside a zip archive (removed on exit). MeshFileNotFoundError for the first one missing."""
+    with ExitStack() as stack:
+        paths = []
+        for name in names:
+            resource = folder.joinpath(name)
+            if not (resource.is_file() or resource.is_dir()):
+                shown = resource if isinstance(resource, Path) else str(resource)
+                raise MeshFileNotFoundError(
+                    shown, f"creature file not found; make it with `python {MAKE_SCRIPT}`"
+                )
+            paths.append(Path(stack.enter_context(as_file(resource))))
+        yield tuple(paths)
 
 
 def _describe(value: object) -> str:
@@ -319,7 +355,8 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
 
     Args:
         name: the creature's name.
-        meshes_dir: folder of the files; default `default_meshes_dir()`.
+        meshes_dir: folder of the files; default `default_meshes_dir()` (`$ENERGYSIM_MESHES`, else the
+            files shipped in the package).
 
     Raises:
         ValueError: unknown name, listing the shipped ones.
@@ -331,10 +368,12 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
     if name not in CREATURES:
         raise ValueError(f"unknown creature {name!r}; choose one of {', '.join(CREATURES)}")
     folder = default_meshes_dir() if meshes_dir is None else Path(meshes_dir)
-    mesh_path, sidecar_path = folder / f"{name}.vtu", folder / f"{name}.json"
-    for path in (mesh_path, sidecar_path):
-        if not path.exists():
-            raise MeshFileNotFoundError(path, f"creature file not found; make it with `python {MAKE_SCRIPT}`")
+    with _local_files(folder, (f"{name}.vtu", f"{name}.json")) as (mesh_path, sidecar_path):
+        return _read_creature(name, mesh_path, sidecar_path)
+
+
+def _read_creature(name: str, mesh_path: Path, sidecar_path: Path) -> Creature:
+    """`load_creature` once both files are on disk."""
     metadata = _read_sidecar(sidecar_path)
     dim = _integer(metadata, "dim", sidecar_path, "2 or 3", lambda d: d in (2, 3))
     num_actuators = _integer(metadata, "num_actuators", sidecar_path, "an integer >= 1", lambda a: a >= 1)
@@ -389,4 +428,12 @@ def load_creature(name: str, meshes_dir: str | PathLike[str] | None = None) -> C
     )
 
 
-__all__ = ["CREATURES", "Creature", "default_meshes_dir", "load_creature", "resting_state", "scene_ground"]
+__all__ = [
+    "CREATURES",
+    "Creature",
+    "default_meshes_dir",
+    "load_creature",
+    "resting_state",
+    "scene_ground",
+    "shipped_meshes_dir",
+]

@@ -1,6 +1,7 @@
-"""Build the shipped soft creatures from voxel designs and write them into meshes/; the run checks itself.
+"""Build the shipped soft creatures from voxel designs and write them into the package data folder
+energysim/assets/creatures/; the run checks itself.
 
-    python scripts/make_creatures.py [--out meshes] [--only worm quadruped ...]
+    python scripts/make_creatures.py [--out energysim/assets/creatures] [--only worm quadruped ...]
 
 Each creature is a set of occupied voxels (pixels in 2D) split into simplices (6 tets per cube, 2 triangles
 per square). Every voxel carries an actuator index (−1: passive) and a rest fibre direction, which its
@@ -37,7 +38,8 @@ from energysim.creatures import CREATURES, Creature, load_creature
 from energysim.mesh import TetMesh, TriMesh, signed_volumes
 from energysim.mesh.io import write_simplices
 
-MESHES = Path(__file__).resolve().parents[1] / "meshes"
+# the source tree's package data, which `load_creature` reads by default and wheels ship
+MESHES = Path(__file__).resolve().parents[1] / "energysim" / "assets" / "creatures"
 X, Y, Z = np.eye(3)
 
 

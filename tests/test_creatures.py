@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.creatures import CREATURES, Creature, default_meshes_dir, load_creature
+from energysim.creatures import CREATURES, Creature, default_meshes_dir, load_creature, shipped_meshes_dir
 from energysim.derivatives import energy_and_gradient
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.mesh import TetMesh, TriMesh, signed_volumes
@@ -168,9 +168,9 @@ def test_script_main_writes_every_creature(tmp_path, capsys):
 
 
 def test_meshes_folder_override_and_missing_files(tmp_path, monkeypatch):
-    shipped = Path(__file__).resolve().parents[1] / "meshes"
+    shipped = Path(__file__).resolve().parents[1] / "energysim" / "assets" / "creatures"
     monkeypatch.delenv("ENERGYSIM_MESHES", raising=False)
-    assert default_meshes_dir() == shipped
+    assert Path(default_meshes_dir()).resolve() == shipped
     monkeypatch.setenv("ENERGYSIM_MESHES", str(tmp_path))
     assert default_meshes_dir() == tmp_path
     with pytest.raises(
@@ -185,6 +185,17 @@ def test_meshes_folder_override_and_missing_files(tmp_path, monkeypatch):
         load_creature("worm")
     with pytest.raises(ValueError, match="unknown creature 'dragon'"):
         load_creature("dragon")
+
+
+def test_make_creatures_writes_the_package_data_that_loads_by_default(monkeypatch):
+    # the script's default output folder is the one the package ships and load_creature reads
+    monkeypatch.delenv("ENERGYSIM_MESHES", raising=False)
+    shipped = Path(shipped_meshes_dir()).resolve()
+    assert shipped == (Path(es.__file__).resolve().parent / "assets" / "creatures")
+    assert make_creatures.MESHES.resolve() == shipped == Path(default_meshes_dir()).resolve()
+    assert sorted(path.name for path in shipped.iterdir()) == sorted(
+        f"{name}.{ext}" for name in CREATURES for ext in ("json", "vtu")
+    )
 
 
 def test_muscles_take_overrides():

@@ -18,7 +18,7 @@ from energysim.contact import contact_areas
 from energysim.creatures import CREATURES, load_creature
 from energysim.mesh import MeshFileError, MeshFileNotFoundError, TetMesh, TriMesh, load_mesh
 
-SHIPPED = Path(__file__).resolve().parents[1] / "meshes"
+SHIPPED = Path(__file__).resolve().parents[1] / "energysim" / "assets" / "creatures"
 UNIT_TET = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 

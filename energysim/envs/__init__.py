@@ -17,7 +17,7 @@ try:
     import gymnasium
 except ImportError as error:  # pragma: no cover - depends on the installation
     raise ImportError(
-        "energysim.envs needs gymnasium; install the rl extra: pip install 'energysim[rl]'"
+        "energysim.envs needs gymnasium; install the rl extra: pip install 'torch-energysim[rl]'"
     ) from error
 
 from energysim.creatures import CREATURES

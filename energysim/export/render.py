@@ -34,7 +34,12 @@ _VIEW_DIR = np.array([0.55, 0.45, 1.0]) / np.linalg.norm([0.55, 0.45, 1.0])
 
 def _pyvista() -> Any:
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
+    try:
+        import pyvista as pv
+    except ImportError as error:
+        raise ImportError(
+            "rendering needs pyvista; install the render extra: pip install 'torch-energysim[render]'"
+        ) from error
 
     pv.OFF_SCREEN = True
     return pv
