@@ -397,3 +397,13 @@ def test_a_failed_animation_keeps_the_previous_file(
         render(dest, [f + 1.0 for f in frames], faces, window_size=(64, 48))
     assert dest.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == [dest.name]
+
+
+def test_a_series_dropped_without_commit_warns_that_its_frames_are_not_published(tmp_path):
+    import gc
+
+    series = VTKSeries(tmp_path, cells=np.array([[0, 1, 2, 3]]), name="frame")
+    series.write(0.0, np.eye(4, 3))
+    with pytest.warns(UserWarning, match="1 frame\\(s\\).*call commit"):
+        del series
+        gc.collect()

@@ -33,6 +33,7 @@ import os
 import re
 import socket
 import tempfile
+import warnings
 import weakref
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
@@ -170,6 +171,10 @@ class VTKSeries:
         key = os.path.abspath(self.series_folder)
         _LIVE_FOLDERS.add(key)
         weakref.finalize(self, _LIVE_FOLDERS.discard, key)
+        # frames written and frames published: a series dropped with frames it never published says
+        # so, since the .pvd still lists the previous series and the new frames are invisible
+        self._counts = [0, 0]
+        weakref.finalize(self, _warn_unpublished, self._counts, str(self.series_folder), name)
         try:
             os.chmod(self.series_folder, apply_umask(0o777))  # mkdtemp makes it private (0700)
             host = socket.gethostname()
@@ -237,6 +242,7 @@ class VTKSeries:
         frame_path = self.series_folder / f"{self.name}_{len(self.frames):05d}.vtu"
         write_vtu(frame_path, vertices, self.cells, point_data, cell_data)
         self.frames.append((t, frame_path))
+        self._counts[0] = len(self.frames)
         logger.debug("wrote frame %d (t = %g) to %s", len(self.frames) - 1, t, frame_path)
         return frame_path
 
@@ -257,6 +263,7 @@ class VTKSeries:
         # only where the library recognises it as its own.
         entries = [(t, path.relative_to(self.folder)) for t, path in self.frames]
         write_pvd(self.pvd_path, entries, temp_folder=self.series_folder)
+        self._counts[1] = len(self.frames)
         logger.info("wrote %s (%d frames in %s)", self.pvd_path, len(self.frames), self.series_folder.name)
         for old in sorted(previous):
             _remove_series_folder(old, self.name)
@@ -269,6 +276,7 @@ class VTKSeries:
             return
         _remove_series_folder(self.series_folder, self.name)
         self.frames.clear()
+        self._counts[:] = [0, 0]
 
     def _remove_orphans(self) -> None:
         """Remove marked folders of this name that no ``.pvd`` lists and whose writer has ended."""
@@ -282,6 +290,18 @@ class VTKSeries:
             if _writer_has_ended(candidate, marker):
                 logger.info("removing %s, left by an export that did not finish", candidate)
                 _remove_series_folder(candidate, self.name)
+
+
+def _warn_unpublished(counts: list[int], series_folder: str, name: str) -> None:
+    written, published = counts
+    if written > published:
+        warnings.warn(
+            f"VTK series {name!r} was dropped with {written - published} frame(s) in {series_folder} that "
+            f"its {name}.pvd does not list: call commit() after the last write, or use the series as a "
+            "`with` block",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 __all__ = ["MARKER_NAME", "VTKSeries"]
