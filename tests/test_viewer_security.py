@@ -376,9 +376,11 @@ def test_a_client_that_stops_reading_is_dropped_after_the_send_timeout(
         with socket.create_connection((viewer.host, viewer.port), timeout=PATIENCE) as client:
             client.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             client.sendall(f"GET /trajectory.bin HTTP/1.1\r\nHost: localhost:{viewer.port}\r\n\r\n".encode())
-            # never read: the thread must give up on its own, with the download unfinished
+            # never read: the thread must give up on its own, with the download unfinished (the
+            # thread may not have started yet when the count is first read, so wait for the log too)
+            went_away = lambda: any("went away" in record.getMessage() for record in caplog.records)  # noqa: E731
+            assert wait_until(went_away), caplog.text
             assert wait_until(lambda: connection_threads() == baseline)
-            assert any("went away" in record.getMessage() for record in caplog.records), caplog.text
             client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
 
 
