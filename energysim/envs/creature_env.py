@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition
+from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition, as_action_array
 from energysim.envs.rendering import SideViewRenderer
 
 
@@ -162,7 +162,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         activation, or with τ the command the activation follows."""
         if self.state is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64)
+        action = as_action_array(action)
         if action.shape != self.action_space.shape:
             raise ValueError(
                 f"action must have shape {self.action_space.shape} (one activation per actuator of the "
