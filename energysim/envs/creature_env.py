@@ -51,8 +51,8 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     Action: one activation per actuator in [−1, 1] (clipped), or with `activation_time_constant` τ
     the command u that the activation a follows, ȧ = (u − a)/τ, from a = 0 at reset. Reward:
     `forward_reward_weight` × centre-of-mass x velocity over the step − `ctrl_cost_weight` × ‖u‖².
-    A failed solve ends the episode (`terminated`, `info["numerical_failure"]`) with the last good
-    observation.
+    A failed solve or a leapfrog step that blew up ends the episode (`terminated`,
+    `info["numerical_failure"]`) with the last good state and observation and a finite reward.
 
     Args:
         creature: a name in `energysim.creatures.CREATURES`.
