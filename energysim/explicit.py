@@ -21,7 +21,8 @@ which a convex obstacle lies), and it only takes energy out. Other contact terms
 A step of `Scene.dt` takes `Scene.substeps` Verlet steps of dt / substeps. Instability does not
 pass silently: an unstable mode grows geometrically, so `step` compares the energy at the start
 and end of every step, and raises `InstabilityError` (with an estimate of the stable step) where it
-grew by more than a fraction of the energy of motion and deformation, or went non-finite.
+grew by more than a fraction of the energy of motion and deformation, where the state or an energy
+went non-finite, or where a vertex ended inside an obstacle (`blown_up`).
 """
 
 from __future__ import annotations
@@ -99,18 +100,85 @@ def split_terms(terms: Sequence[EnergyTerm]) -> tuple[list[EnergyTerm], list[Obs
     return forces, obstacles  # type: ignore[return-value]
 
 
+def _inside(obstacle: Obstacle, x: Tensor) -> tuple[Tensor, Tensor]:
+    # the signed distances `[B, m]` of the obstacle's vertices, in m, and which lie deeper inside
+    # than `START_DEPTH_TOLERANCE` × its d̂
+    distance = obstacle.signed_distance(x.detach()[:, obstacle.element_vertices[:, 0]])
+    return distance, distance < -START_DEPTH_TOLERANCE * obstacle.barrier_distance
+
+
 def check_start(obstacles: Sequence[Obstacle], x: Tensor) -> None:
     """Raise ValueError naming the vertices that start a step inside an obstacle (deeper than
     `START_DEPTH_TOLERANCE` × its d̂)."""
     for obstacle in obstacles:
-        distance = obstacle.signed_distance(x.detach()[:, obstacle.element_vertices[:, 0]])
-        inside = (distance < -START_DEPTH_TOLERANCE * obstacle.barrier_distance).any(dim=0)
+        distance, inside = _inside(obstacle, x)
+        inside = inside.any(dim=0)
         if bool(inside.any()):
             index = obstacle.element_vertices[inside, 0]
             raise ValueError(
                 f"the state is not admissible: vertices {format_indices(index)} are inside {obstacle!r} "
                 f"(signed distance down to {float(distance.min()):.3g} m); every step must start outside"
             )
+
+
+def ends_inside(obstacles: Sequence[Obstacle], x: Tensor) -> Tensor:
+    """Which entries of positions `x` `[B, n, d]` have a vertex inside an obstacle (as `check_start`
+    measures it), `[B]` bool. The contact projection keeps every vertex of a stable step outside,
+    so one that ends inside is the mark of a step that blew up."""
+    inside = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+    for obstacle in obstacles:
+        inside = inside | _inside(obstacle, x)[1].any(dim=1)
+    return inside
+
+
+def blown_up(
+    x: Tensor,
+    v: Tensor,
+    obstacles: Sequence[Obstacle],
+    energy_before: Tensor,
+    energy_after: Tensor,
+    allowance: Tensor,
+) -> Tensor:
+    """Which entries of a finished explicit step blew up, `[B]` bool.
+
+    An entry passes only where its positions `x` and velocities `v` (`[B, n, d]`, m and m/s) are
+    finite, its energies at the start and end (`[B]`, J) and the gain it is allowed (`allowance`
+    `[B]`, J) are finite, the energy grew by no more than the allowance, and no vertex ended inside
+    an obstacle (`ends_inside`). Finiteness is checked by name, not left to the comparison: a
+    velocity past about 1e154 m/s squares to an infinite kinetic energy, and an allowance that
+    grows with the end energy then makes inf ≤ inf + inf hold; and a NaN on either side of a
+    comparison makes it False, so the gain is tested as "within", never as "exceeds"."""
+    finite = (
+        torch.isfinite(x).all(dim=(-1, -2))
+        & torch.isfinite(v).all(dim=(-1, -2))
+        & torch.isfinite(energy_before)
+        & torch.isfinite(energy_after)
+        & torch.isfinite(allowance)
+    )
+    within = energy_after <= energy_before + allowance
+    return ~(finite & within) | ends_inside(obstacles, x)
+
+
+def describe_blow_up(obstacles: Sequence[Obstacle], x: Tensor, v: Tensor) -> str:
+    """What, besides its energy, marks the blown-up step of one entry (`x`, `v` `[1, n, d]`): its
+    non-finite positions or velocities, its largest velocity component, and the vertices left inside an
+    obstacle; one sentence for an `InstabilityError`."""
+    if not bool(torch.isfinite(x).all()):
+        return " Its positions went non-finite."
+    if not bool(torch.isfinite(v).all()):
+        return " Its velocities went non-finite."
+    # the largest component, not the norm: the norm of a velocity past 1e154 m/s overflows
+    speed = float(v.detach().abs().max()) if v.numel() else 0.0
+    text = f" Its velocities reach {speed:.3g} m/s"
+    for obstacle in obstacles:
+        distance, inside = _inside(obstacle, x)
+        if bool(inside.any()):
+            index = obstacle.element_vertices[inside[0], 0]
+            text += (
+                f"; vertices {format_indices(index)} ended inside {obstacle!r} (signed distance down to "
+                f"{float(distance.min()):.3g} m), which contact keeps every stable step out of"
+            )
+    return text + "."
 
 
 def leapfrog(

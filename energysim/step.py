@@ -19,6 +19,7 @@ from energysim import compiled as compiled_functions
 from energysim import explicit
 from energysim.contact.obstacles import project_contacts
 from energysim.energies.base import EnergyTerm, is_dissipative, limits_steps
+from energysim.energies.muscles import check_action_width
 from energysim.implicit import ImplicitStep, differentiable_parameters, step_terms, unrolled_step
 from energysim.objective import Objective
 from energysim.optim import Solver, SolverResult
@@ -35,13 +36,18 @@ class StepResult:
     stats: SolverResult
 
 
-def _check_action(action: Tensor | None, batch: int, like: Tensor | None = None) -> Tensor | None:
+def _check_action(
+    action: Tensor | None, batch: int, scene: Scene, like: Tensor | None = None
+) -> Tensor | None:
     """`action` as `[batch, a]`, in the dtype and on the device of `like` (the state) where given:
-    a conversion autograd records, so the action's own tensor is neither changed nor cut off."""
+    a conversion autograd records, so the action's own tensor is neither changed nor cut off. Its
+    width and type are checked against `scene`'s actuated terms first (`check_action_width`)."""
     if action is None:
         return None
     if not isinstance(action, Tensor):
         action = torch.as_tensor(action)
+    # before the conversion, which would drop a complex action's imaginary part
+    check_action_width(scene.terms, action)
     if like is not None:
         action = action.to(dtype=like.dtype, device=like.device)
     if action.ndim == 1:
@@ -425,14 +431,15 @@ def _explicit_step(
             + explicit.ENERGY_GAIN_FLOOR * motion_after
             + ENERGY_ROUNDING * torch.maximum(scale_before, scale_after)
         )
-        unstable = ~finite | (energy_after > energy_before + allowance)
+        unstable = explicit.blown_up(x_next, v_next, obstacles, energy_before, energy_after, allowance)
     if bool(unstable.any()):
         entry = int(torch.nonzero(unstable)[0])
         energies = (
             float(energy_before[entry]),
             float(energy_after[entry]) if bool(finite[entry]) else math.nan,
         )
-        _raise_unstable(scene, terms, x_prev, action, energies, entry)
+        detail = explicit.describe_blow_up(obstacles, x_next[entry : entry + 1], v_next[entry : entry + 1])
+        _raise_unstable(scene, terms, x_prev, action, energies, entry, detail)
     stats = SolverResult(
         x=x_next.detach(),
         iterations=0,
@@ -466,9 +473,11 @@ def _raise_unstable(
     action: Tensor | None,
     energies: tuple[float, float],
     entry: int,
+    detail: str = "",
 ) -> None:
     """Raise `InstabilityError` for batch entry `entry`, with its energies at the step's start and end
-    (J) and its stable step over `terms` (the force terms: contact acts by projection)."""
+    (J), `detail` (`explicit.describe_blow_up`) and its stable step over `terms` (the force terms:
+    contact acts by projection)."""
     rows = slice(entry, entry + 1)
     act = None if action is None else action[rows].detach()
     courant, damping = _stable_limits(scene, terms, x_prev[rows].detach(), act)
@@ -483,7 +492,7 @@ def _raise_unstable(
     raise explicit.InstabilityError(
         f"the leapfrog step blew up: h = {h:.4g} s ({scene.substeps} substeps of dt = {scene.dt:.4g} s); "
         f"batch entry {entry}'s energy went from {energies[0]:.6g} J to {energies[1]:.6g} J in one "
-        f"step. Its Courant limit at the step's start is about 2/ω_max = {courant:.4g} s (ω_max² the "
+        f"step.{detail} Its Courant limit at the step's start is about 2/ω_max = {courant:.4g} s (ω_max² the "
         f"largest eigenvalue of M⁻¹H){viscous}: use {advice}, or an implicit integrator"
     )
 
@@ -501,7 +510,7 @@ def stable_substeps(scene: Scene, x: Tensor | None = None, action: Tensor | None
         scene = scene.matching(x, "x")
     terms, _ = explicit.split_terms(list(scene.terms))
     x = (scene.rest_positions if x is None else x).reshape(1, scene.num_vertices, scene.dim).detach()
-    act = None if action is None else _check_action(action, 1, x)
+    act = None if action is None else _check_action(action, 1, scene, x)
     limit = min(_stable_limits(scene, terms, x, act))
     return max(1, math.ceil(scene.dt / (explicit.COURANT_SAFETY * limit))) if math.isfinite(limit) else 1
 
@@ -575,7 +584,7 @@ def step(
         raise ValueError("state has non-finite entries")
     # device and dtype follow the state, through a converted copy: the scene itself is unchanged
     scene = scene.matching(state)
-    action = _check_action(action, x_prev.shape[0], state)
+    action = _check_action(action, x_prev.shape[0], scene, state)
     solver = solver or scene.solver
     parameters = differentiable_parameters([scene])
     wants_grad = torch.is_grad_enabled() and (
@@ -664,7 +673,7 @@ def solve_static(
         terms=list(scene.terms),
         free=scene.free,
         residual_scale=scene.dt / scene.vertex_mass,
-        action=_check_action(action, batched.shape[0], batched),
+        action=_check_action(action, batched.shape[0], scene, batched),
         anchor=batched,
     )
     result = (solver or scene.solver).minimize(objective, batched)

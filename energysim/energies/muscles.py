@@ -2,11 +2,66 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
+import torch
 from torch import Tensor
 
 from energysim.energies.springs import Springs
 from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
+
+
+def actuator_counts(terms: Iterable[object]) -> dict[str, int]:
+    """The actuated terms among `terms` (those that declare `num_actuators`, as `ActuatedSprings`
+    and `FibreMuscles` do), by class name, with the most action entries any of that class reads."""
+    counts: dict[str, int] = {}
+    for term in terms:
+        count = getattr(term, "num_actuators", None)
+        if isinstance(count, int):
+            name = type(term).__name__
+            counts[name] = max(counts.get(name, 0), count)
+    return counts
+
+
+def check_action_width(terms: Iterable[object], action: Tensor | None) -> None:
+    """Refuse an action that is not one entry per actuator of the scene's `terms`.
+
+    A term reads the action when it declares `num_actuators` (the entries it reads). The action of a
+    step, `[a]` or `[B, a]`, must have a equal to the largest of them: fewer would leave actuators
+    without a command, more would be entries that nothing reads, ignored without a word. A scene
+    without an actuated term takes no action (a = 0 is accepted). A real-valued action is required:
+    a complex one would lose its imaginary part and a bool one is no activation. Other shapes than
+    `[a]` and `[B, a]` are left to the caller's shape check.
+
+    Raises:
+        ValueError: naming the action's entries per body and the actuators of the scene's terms.
+    """
+    if action is None:
+        return
+    if action.dtype == torch.bool or action.is_complex():
+        raise ValueError(f"action must hold real numbers (activations in [-1, 1]), got dtype {action.dtype}")
+    if action.ndim not in (1, 2):
+        return
+    width = action.shape[-1]
+    counts = actuator_counts(terms)
+    if not counts:
+        if width:
+            raise ValueError(
+                f"action has {width} entries per body, but the scene has no actuated term (none "
+                "declares num_actuators, as FibreMuscles and ActuatedSprings do): nothing would read "
+                "it; pass action=None"
+            )
+        return
+    needed = max(counts.values())
+    if width != needed:
+        if len(counts) == 1:
+            (name,) = counts
+            terms_text = f"the scene's {name} have {needed} actuators"
+        else:
+            listed = ", ".join(f"{name}: {count}" for name, count in counts.items())
+            terms_text = f"the scene's actuated terms read {needed} ({listed})"
+        raise ValueError(f"action has {width} entries per body, {terms_text}")
 
 
 def contraction(

@@ -8,7 +8,10 @@ A step whose solve fails is a numerical failure of that batch entry: the solver 
 solve that does not reach `solver_tol` within `solver_max_iter` Newton iterations raises
 `ConvergenceError`, as does a non-finite iterate. The batch is then split in halves, recursively,
 until the failing entries stand alone: they keep their last good state and are flagged, the others
-are stepped as if nothing had happened (entries of a batched solve never mix, see `NewtonCG`).
+are stepped as if nothing had happened (entries of a batched solve never mix, see `NewtonCG`). The
+explicit step fails the same way, by `InstabilityError`, where an entry's energy grew past its
+allowance, went non-finite, or a vertex ended inside the ground (`explicit.blown_up`); so no
+failed entry returns a non-finite state, observation or reward.
 
 With `activation_time_constant` τ set, the action is a command u that the muscles' activation a
 follows with first-order dynamics ȧ = (u − a)/τ, integrated exactly over each physics step; without
@@ -65,6 +68,26 @@ def _check_number(
     if not ok:
         bound = "" if low is None else f" and {'>' if strict else '>='} {low}"
         raise ValueError(f"{name} must be a finite number{bound}{unit}, got {value!r}")
+
+
+def as_action_array(action: object, name: str = "action") -> np.ndarray:
+    """`action` as a float64 numpy array, refusing what is not real numbers: a bool, complex, string
+    or object array would otherwise be converted without a word (complex losing its imaginary part).
+
+    Raises:
+        ValueError: naming `name` and the dtype it has.
+    """
+    array = np.asarray(action.detach().cpu() if isinstance(action, Tensor) else action)
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must hold real numbers (activations in [-1, 1]), got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
+def _representable(observation: Tensor, reward: Tensor) -> Tensor:
+    """Which entries' observation `[B, k]` stays finite as float32 (what the envs return) and reward
+    `[B]` finite, `[B]` bool."""
+    finite = torch.isfinite(observation.to(torch.float32)).all(dim=1)
+    return finite & torch.isfinite(reward)
 
 
 @dataclass(frozen=True)
@@ -304,6 +327,12 @@ class CreatureSimulation:
 
     def check_action(self, action: Tensor) -> Tensor:
         """`action` `[B, a]` as a finite tensor on the simulation's device, clipped to [−1, 1]."""
+        if not isinstance(action, Tensor):
+            action = as_action_array(action)
+        elif action.dtype == torch.bool or action.is_complex():
+            raise ValueError(
+                f"action must hold real numbers (activations in [-1, 1]), got dtype {action.dtype}"
+            )
         action = torch.as_tensor(action, device=self.device).to(self.dtype)
         if action.ndim != 2 or action.shape[1] != self.num_actuators:
             raise ValueError(
@@ -326,7 +355,9 @@ class CreatureSimulation:
         step. With τ, the activation starts from `activation` `[B, a]` (None: at rest, zeros) and
         before each physics step of length h becomes u + (a − u)·exp(−h/τ): the exact solution of
         ȧ = (u − a)/τ for u held constant over the step. An entry whose solve fails stops at its last
-        good state for the rest of the frame, and its activation at the one it failed with.
+        good state for the rest of the frame, and its activation at the one it failed with. An entry
+        whose frame ends finite in the simulation's precision but with an observation past float32's
+        range or a non-finite reward fails too, and goes back to the state it started the frame with.
         """
         command = self.check_action(action)
         if state.ndim != 2 or state.shape[0] != command.shape[0]:
@@ -344,6 +375,7 @@ class CreatureSimulation:
             if current.shape != command.shape:
                 expected, got = list(command.shape), list(current.shape)
                 raise ValueError(f"activation must have the action's shape {expected}, got {got}")
+        start = state
         x_before = self.x_position(state)
         alive = torch.ones(batch, dtype=torch.bool, device=self.device)
         iterations = torch.zeros(batch, dtype=torch.int64, device=self.device)
@@ -366,11 +398,21 @@ class CreatureSimulation:
                 state = state.index_copy(0, index, new)
                 alive = alive.index_copy(0, index, ok)
                 iterations = iterations.index_add(0, index, taken)
-            x_after = self.x_position(state)
-            x_velocity = (x_after - x_before) / self.frame_seconds
-            reward_forward = self.config.forward_reward_weight * x_velocity
             reward_ctrl = -self.config.ctrl_cost_weight * command.square().sum(dim=1)
-            observation = self.observe(state, current)
+            x_after, x_velocity, reward_forward, observation = self._outcome(state, current, x_before)
+            unrepresentable = ~_representable(observation, reward_forward)
+            if bool(unrepresentable.any()):
+                # finite in the simulation's precision, but not as the float32 observation or the
+                # reward: the entry failed, and goes back to the frame's start
+                logger.info(
+                    "numerical failure of a %s step: entries %s left the float32 range",
+                    self.config.creature,
+                    torch.nonzero(unrepresentable).flatten().tolist(),
+                )
+                state = torch.where(unrepresentable[:, None], start, state)
+                alive = alive & ~unrepresentable
+                iterations = iterations.masked_fill(unrepresentable, 0)
+                x_after, x_velocity, reward_forward, observation = self._outcome(state, current, x_before)
         return Transition(
             state=state,
             action=command,
@@ -384,6 +426,16 @@ class CreatureSimulation:
             numerical_failure=~alive,
             solver_iterations=iterations,
         )
+
+    def _outcome(
+        self, state: Tensor, activation: Tensor, x_before: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """At the end of a frame: centre-of-mass x `[B]` (m), its velocity over the frame `[B]` (m/s),
+        the forward reward `[B]` and the observation `[B, layout.size]`."""
+        x_after = self.x_position(state)
+        x_velocity = (x_after - x_before) / self.frame_seconds
+        reward_forward = self.config.forward_reward_weight * x_velocity
+        return x_after, x_velocity, reward_forward, self.observe(state, activation)
 
     def _solve(self, state: Tensor, activation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """One physics step of every entry: new states (the old one where it failed), which entries
@@ -406,4 +458,4 @@ class CreatureSimulation:
         return new_state, ok, ok.to(torch.int64) * result.stats.iterations
 
 
-__all__ = ["CreatureEnvConfig", "CreatureSimulation", "Transition"]
+__all__ = ["CreatureEnvConfig", "CreatureSimulation", "Transition", "as_action_array"]

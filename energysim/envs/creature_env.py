@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition
+from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition, as_action_array
 from energysim.envs.rendering import SideViewRenderer
 
 
@@ -51,8 +51,8 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
     Action: one activation per actuator in [−1, 1] (clipped), or with `activation_time_constant` τ
     the command u that the activation a follows, ȧ = (u − a)/τ, from a = 0 at reset. Reward:
     `forward_reward_weight` × centre-of-mass x velocity over the step − `ctrl_cost_weight` × ‖u‖².
-    A failed solve ends the episode (`terminated`, `info["numerical_failure"]`) with the last good
-    observation.
+    A failed solve or a leapfrog step that blew up ends the episode (`terminated`,
+    `info["numerical_failure"]`) with the last good state and observation and a finite reward.
 
     Args:
         creature: a name in `energysim.creatures.CREATURES`.
@@ -162,7 +162,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         activation, or with τ the command the activation follows."""
         if self.state is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64)
+        action = as_action_array(action)
         if action.shape != self.action_space.shape:
             raise ValueError(
                 f"action must have shape {self.action_space.shape} (one activation per actuator of the "

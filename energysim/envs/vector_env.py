@@ -22,7 +22,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation
+from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, as_action_array
 from energysim.envs.creature_env import action_space, observation_space
 
 STEP_INFO_KEYS = (
@@ -162,7 +162,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         """Step every entry with its action `[B, a]`; reset those that ended at the previous step."""
         if not self._was_reset:
             raise RuntimeError("call reset() before step()")
-        actions = np.asarray(actions, dtype=np.float64)
+        actions = as_action_array(actions, "actions")
         if actions.shape != self.action_space.shape:
             raise ValueError(
                 f"actions must have shape {self.action_space.shape} (num_envs x actuators of the "
