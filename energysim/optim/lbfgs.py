@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
+from energysim.optim.arguments import require_integer
 from energysim.optim.base import Solver, SolverResult, line_step
 
 
@@ -51,8 +52,7 @@ class LBFGS(Solver):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.history_size < 1:
-            raise ValueError(f"history_size must be >= 1, got {self.history_size}")
+        require_integer(self.name, "history_size", self.history_size, minimum=1)
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
         self.prepare(objective)
