@@ -34,6 +34,8 @@ class SolverResult:
         converged: whether every batch entry reached `tol`.
         solver: the solver's name.
         tol: the tolerance in m/s.
+        stalled: whether some entry that did not reach `tol` was stopped before `max_iter` because
+            its iterations no longer made progress beyond the rounding of E and ∇E (`Stagnation`).
     """
 
     x: Tensor
@@ -45,14 +47,21 @@ class SolverResult:
     converged: bool
     solver: str
     tol: float
+    stalled: bool = False
 
     def summary(self) -> str:
         """One line with every figure, for logs and warnings."""
-        return (
+        line = (
             f"{self.solver}: {'converged' if self.converged else 'NOT converged'} in {self.iterations} "
             f"iterations, velocity residual {self.residual:.3e} m/s (tol {self.tol:.1e}), "
             f"{self.grad_evals} gradient evals, {self.hvp_evals} HVPs, {self.energy_evals} energy evals"
         )
+        if self.stalled and not self.converged:
+            line += (
+                "; stopped early: no step reduced the residual or the energy beyond their rounding "
+                "(the residual is at the floor this precision reaches; ask for a larger tol)"
+            )
+        return line
 
 
 @dataclass(frozen=True)
@@ -116,10 +125,18 @@ class Solver:
         return result
 
     def finish(
-        self, objective: Objective, x: Tensor, residual: Tensor, iterations: int, hvps: int
+        self,
+        objective: Objective,
+        x: Tensor,
+        residual: Tensor,
+        iterations: int,
+        hvps: int,
+        stopped: Tensor | None = None,
     ) -> SolverResult:
-        """Build the result; raise on non-finite iterates; warn or raise when not converged."""
+        """Build the result; raise on non-finite iterates; warn or raise when not converged.
+        `stopped`: the entries `[B]` stopped early for lack of progress, if any."""
         worst = float(residual.max()) if residual.numel() else 0.0
+        stalled = stopped is not None and bool((stopped & (residual >= self.tol)).any())
         result = SolverResult(
             x=x.detach(),
             iterations=iterations,
@@ -130,10 +147,76 @@ class Solver:
             converged=bool((residual < self.tol).all()),
             solver=self.name,
             tol=self.tol,
+            stalled=stalled,
         )
         if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
             raise ConvergenceError("non-finite positions or residual: " + result.summary())
         return self._report(result)
+
+
+# Iterations in a row without progress (`Stagnation`) after which an entry stops.
+STALL_ITERATIONS = 5
+# A new best residual must be below this fraction of the previous best to count as progress.
+STALL_RESIDUAL_FRACTION = 0.9
+
+
+@dataclass(frozen=True)
+class Stagnation:
+    """Per batch entry, the iterations in a row that made no progress, so that a solve stuck at the
+    rounding floor stops after `STALL_ITERATIONS` instead of spinning until `max_iter`, and returns
+    the best iterate it met there.
+
+    An iteration makes progress where the velocity residual falls below `STALL_RESIDUAL_FRACTION` of
+    the best so far, or the energy falls by more than 64 ulps of the largest |E| of the solve. That
+    scale stands for the magnitude of the terms E sums, which set its rounding: E itself can vanish
+    at the minimum while they do not (an unloaded body at rest), so |E| there says nothing. Far from
+    the minimum the energy falls by far more; near it Newton's residual falls by orders of magnitude
+    per iteration: only an iterate whose steps the rounding decides stops. At that floor the steps
+    are rounding's, and may raise the residual by orders of magnitude while the energy "falls" by
+    its noise: hence the best iterate is kept.
+
+    Attributes:
+        best: the smallest residual so far `[B]`, in m/s; best_x: where it was met `[B, n, d]`, in m.
+        scale: the largest |E| so far `[B]`, in J.
+        count: iterations in a row without progress `[B]`.
+    """
+
+    best: Tensor
+    best_x: Tensor
+    scale: Tensor
+    count: Tensor
+
+    @staticmethod
+    def start(x: Tensor, energy: Tensor, residual: Tensor) -> Stagnation:
+        """The record at the start of a solve from `x` `[B, n, d]`, with E `[B]` and the residual
+        `[B]` there."""
+        return Stagnation(residual.clone(), x, energy.abs(), torch.zeros_like(residual, dtype=torch.long))
+
+    def update(
+        self, active: Tensor, energy: Tensor, new_x: Tensor, new_energy: Tensor, new_residual: Tensor
+    ) -> tuple[Stagnation, Tensor]:
+        """The record after an iteration of the `active` entries from E `energy` to `new_energy` `[B]`
+        at `new_x` `[B, n, d]`, with `new_residual` `[B]` there, and which entries now stop `[B]`."""
+        eps = torch.finfo(energy.dtype).eps
+        scale = torch.maximum(self.scale, new_energy.abs())
+        improved = new_residual < STALL_RESIDUAL_FRACTION * self.best
+        descended = energy - new_energy > 64 * eps * scale
+        progress = improved | descended
+        count = torch.where(active & ~progress, self.count + 1, torch.zeros_like(self.count))
+        better = new_residual < self.best
+        best_x = torch.where(better[:, None, None], new_x, self.best_x)
+        record = Stagnation(torch.where(better, new_residual, self.best), best_x, scale, count)
+        return record, active & (count >= STALL_ITERATIONS)
+
+    def rows(self, rows: Tensor) -> Stagnation:
+        """The record of the batch entries `rows` alone."""
+        return Stagnation(self.best[rows], self.best_x[rows], self.scale[rows], self.count[rows])
+
+    def best_of(self, x: Tensor, residual: Tensor, stopped: Tensor) -> tuple[Tensor, Tensor]:
+        """`x` `[B, n, d]` and `residual` `[B]`, with the best iterate where an entry `stopped` `[B]`
+        short of it."""
+        back = stopped & (self.best < residual)
+        return torch.where(back[:, None, None], self.best_x, x), torch.where(back, self.best, residual)
 
 
 def _rounding(x: Tensor, energy: Tensor) -> Tensor:

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from energysim.objective import Objective
 from energysim.optim.arguments import require_integer
-from energysim.optim.base import Solver, SolverResult, line_step
+from energysim.optim.base import Solver, SolverResult, Stagnation, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -65,6 +65,7 @@ class LBFGS(Solver):
         scale = torch.ones_like(energy)
         restarted = torch.zeros_like(energy, dtype=torch.bool)
         stalled = torch.zeros_like(restarted)
+        stagnation = Stagnation.start(x, energy, residual)
         iterations = 0
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
@@ -99,9 +100,13 @@ class LBFGS(Solver):
             keep = ~moved[:, None, None]
             x = torch.where(keep, x, search.x)
             gradient = torch.where(keep, gradient, search.gradient)
-            energy = torch.where(moved, search.energy, energy)
+            new_energy = torch.where(moved, search.energy, energy)
             residual = torch.where(moved, search.residual, residual)
-        return self.finish(objective, x, residual, iterations, 0)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual)
+            energy = new_energy
+            stalled = stalled | stuck
+        x, residual = stagnation.best_of(x, residual, stalled)
+        return self.finish(objective, x, residual, iterations, 0, stalled)
 
     @staticmethod
     def _two_loop(

@@ -34,7 +34,7 @@ from energysim.derivatives import HessianOperator
 from energysim.energies.inertia import Inertia
 from energysim.objective import Objective
 from energysim.optim.arguments import require_bool, require_choice, require_integer, require_real
-from energysim.optim.base import Solver, SolverResult, line_step
+from energysim.optim.base import Solver, SolverResult, Stagnation, line_step
 
 # The default DOF limits of the direct solve per batch entry (`NewtonCG.direct_max_dofs=None`).
 # Assembled eagerly, a direct solve builds dense or level blocks, whose cost grows much faster than
@@ -253,7 +253,8 @@ class NewtonCG(Solver):
         # entries whose kept factorisation served poorly (`reuse_factorization`): factorise anew
         refresh = torch.zeros_like(steepest)
         # the whole batch's results; `entries` are the batch indices of the rows still computed on
-        solved_x, solved_residual = x, residual
+        solved_x, solved_residual, solved_stalled = x, residual, stalled
+        stagnation = Stagnation.start(x, energy, residual)
         entries = torch.arange(x.shape[0], device=x.device)
         used = [objective]
         for _ in range(self.max_iter):
@@ -264,6 +265,8 @@ class NewtonCG(Solver):
                 rows = torch.nonzero(active).reshape(-1)
                 solved_x = solved_x.index_copy(0, entries, x)
                 solved_residual = solved_residual.index_copy(0, entries, residual)
+                solved_stalled = solved_stalled.index_copy(0, entries, stalled)
+                stagnation = stagnation.rows(rows)
                 entries = entries[rows]
                 objective = self.prepare(root.subset(entries))
                 used.append(objective)
@@ -304,14 +307,19 @@ class NewtonCG(Solver):
             keep = worse[:, None, None]
             x = torch.where(keep, x, search.x)
             gradient = torch.where(keep, gradient, search.gradient)
-            energy = torch.where(worse, energy, search.energy)
+            new_energy = torch.where(worse, energy, search.energy)
             residual = torch.where(worse, residual, search.residual)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual)
+            energy = new_energy
+            stalled = stalled | stuck
+        x, residual = stagnation.best_of(x, residual, stalled)
         if len(used) > 1:
             x = solved_x.index_copy(0, entries, x)
             residual = solved_residual.index_copy(0, entries, residual)
+            stalled = solved_stalled.index_copy(0, entries, stalled)
             root.grad_evals = sum(part.grad_evals for part in used)
             root.energy_evals = sum(part.energy_evals for part in used)
-        return self.finish(root, x, residual, iterations, hvps)
+        return self.finish(root, x, residual, iterations, hvps, stalled)
 
     def direct_limit(self, *, compiled_band: bool = False) -> int:
         """The most DOFs per batch entry a direct solve takes: `direct_max_dofs`, or where that is
