@@ -9,7 +9,7 @@ from torch import Tensor
 
 from energysim.objective import Objective
 from energysim.optim.arguments import require_integer
-from energysim.optim.base import Solver, SolverResult, Stagnation, line_step
+from energysim.optim.base import LBFGS_STALL_ITERATIONS, Solver, SolverResult, Stagnation, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -65,7 +65,7 @@ class LBFGS(Solver):
         scale = torch.ones_like(energy)
         restarted = torch.zeros_like(energy, dtype=torch.bool)
         stalled = torch.zeros_like(restarted)
-        stagnation = Stagnation.start(x, energy, residual)
+        stagnation = Stagnation.start(x, energy, residual, LBFGS_STALL_ITERATIONS)
         iterations = 0
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
@@ -102,7 +102,7 @@ class LBFGS(Solver):
             gradient = torch.where(keep, gradient, search.gradient)
             new_energy = torch.where(moved, search.energy, energy)
             residual = torch.where(moved, search.residual, residual)
-            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
             energy = new_energy
             stalled = stalled | stuck
         x, residual = stagnation.best_of(x, residual, stalled)

@@ -309,7 +309,7 @@ class NewtonCG(Solver):
             gradient = torch.where(keep, gradient, search.gradient)
             new_energy = torch.where(worse, energy, search.energy)
             residual = torch.where(worse, residual, search.residual)
-            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
             energy = new_energy
             stalled = stalled | stuck
         x, residual = stagnation.best_of(x, residual, stalled)
