@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
+from energysim.optim.arguments import require_integer, require_real
 from energysim.optim.base import Solver, SolverResult
 
 
@@ -30,6 +31,11 @@ class Adam(Solver):
     max_iter: int = 5000
     lr: float = 1e-3
     patience: int = 10
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require_real(self.name, "lr", self.lr, unit="m", above=0.0)
+        require_integer(self.name, "patience", self.patience, minimum=0)
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
         self.prepare(objective)

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
+from energysim.optim.arguments import require_bool, require_integer, require_real
 
 
 class ConvergenceWarning(RuntimeWarning):
@@ -33,6 +34,8 @@ class SolverResult:
         converged: whether every batch entry reached `tol`.
         solver: the solver's name.
         tol: the tolerance in m/s.
+        stalled: whether some entry that did not reach `tol` was stopped before `max_iter` because
+            its iterations no longer made progress beyond the rounding of E and ∇E (`Stagnation`).
     """
 
     x: Tensor
@@ -44,14 +47,21 @@ class SolverResult:
     converged: bool
     solver: str
     tol: float
+    stalled: bool = False
 
     def summary(self) -> str:
         """One line with every figure, for logs and warnings."""
-        return (
+        line = (
             f"{self.solver}: {'converged' if self.converged else 'NOT converged'} in {self.iterations} "
             f"iterations, velocity residual {self.residual:.3e} m/s (tol {self.tol:.1e}), "
             f"{self.grad_evals} gradient evals, {self.hvp_evals} HVPs, {self.energy_evals} energy evals"
         )
+        if self.stalled and not self.converged:
+            line += (
+                "; stopped early: no step reduced the residual or the energy beyond their rounding "
+                "(the residual is at the floor this precision reaches; ask for a larger tol)"
+            )
+        return line
 
 
 @dataclass(frozen=True)
@@ -73,10 +83,10 @@ class Solver:
     compile: bool = False
 
     def __post_init__(self) -> None:
-        if not (self.tol > 0):
-            raise ValueError(f"tol must be > 0 m/s, got {self.tol}")
-        if self.max_iter < 1:
-            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
+        require_real(self.name, "tol", self.tol, unit="m/s", above=0.0)
+        require_integer(self.name, "max_iter", self.max_iter, minimum=1)
+        require_bool(self.name, "strict", self.strict)
+        require_bool(self.name, "compile", self.compile)
 
     @property
     def name(self) -> str:
@@ -115,10 +125,18 @@ class Solver:
         return result
 
     def finish(
-        self, objective: Objective, x: Tensor, residual: Tensor, iterations: int, hvps: int
+        self,
+        objective: Objective,
+        x: Tensor,
+        residual: Tensor,
+        iterations: int,
+        hvps: int,
+        stopped: Tensor | None = None,
     ) -> SolverResult:
-        """Build the result; raise on non-finite iterates; warn or raise when not converged."""
+        """Build the result; raise on non-finite iterates; warn or raise when not converged.
+        `stopped`: the entries `[B]` stopped early for lack of progress, if any."""
         worst = float(residual.max()) if residual.numel() else 0.0
+        stalled = stopped is not None and bool((stopped & (residual >= self.tol)).any())
         result = SolverResult(
             x=x.detach(),
             iterations=iterations,
@@ -129,10 +147,104 @@ class Solver:
             converged=bool((residual < self.tol).all()),
             solver=self.name,
             tol=self.tol,
+            stalled=stalled,
         )
         if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
             raise ConvergenceError("non-finite positions or residual: " + result.summary())
         return self._report(result)
+
+
+# Iterations in a row without progress (`Stagnation`) after which an entry stops: Newton's residual
+# falls by orders of magnitude per iteration near a minimum; L-BFGS's, superlinearly at best, can
+# take dozens of iterations whose energy changes lie below the noise before it falls by 10 %
+# (a stiff rotated box, at 1e-3 m/s).
+STALL_ITERATIONS = 5
+LBFGS_STALL_ITERATIONS = 50
+# A new best residual must be below this fraction of the previous best to count as progress.
+STALL_RESIDUAL_FRACTION = 0.9
+
+
+@dataclass(frozen=True)
+class Stagnation:
+    """Per batch entry, the iterations in a row that made no progress, so that a solve stuck at the
+    rounding floor stops after `window` such iterations instead of spinning until `max_iter`, and returns
+    the best iterate it met there.
+
+    An iteration makes progress where the velocity residual falls below `STALL_RESIDUAL_FRACTION` of
+    the best so far, or the energy falls by more than its rounding: the largest allowance of the
+    solve's line searches (`LineStep.allowance`: the noise, where they measured it; a search whose
+    first trial passes does not measure it, and its allowance is far below the noise measured a step
+    before) and 64 ulps of the largest |E| of the solve. That scale stands for the magnitude of the
+    terms E sums, which set its rounding where the noise was never measured: E itself can vanish at
+    the minimum while they do not (an unloaded body at rest), so |E| there says nothing. Far from
+    the minimum the energy falls by far more; near it Newton's residual falls by orders of magnitude
+    per iteration: only an iterate whose steps the rounding decides stops. At that floor the steps
+    are rounding's, and may raise the residual by orders of magnitude while the energy "falls" by
+    its noise: hence the best iterate is kept.
+
+    Attributes:
+        best: the smallest residual so far `[B]`, in m/s; best_x: where it was met `[B, n, d]`, in m.
+        scale: the largest |E| so far `[B]`, in J; noise: the largest line-search allowance so far
+            `[B]`, in J.
+        count: iterations in a row without progress `[B]`.
+        window: how many of them stop an entry.
+    """
+
+    best: Tensor
+    best_x: Tensor
+    scale: Tensor
+    noise: Tensor
+    count: Tensor
+    window: int = STALL_ITERATIONS
+
+    @staticmethod
+    def start(x: Tensor, energy: Tensor, residual: Tensor, window: int = STALL_ITERATIONS) -> Stagnation:
+        """The record at the start of a solve from `x` `[B, n, d]`, with E `[B]` and the residual
+        `[B]` there."""
+        count = torch.zeros_like(residual, dtype=torch.long)
+        return Stagnation(residual.clone(), x, energy.abs(), torch.zeros_like(energy), count, window)
+
+    def update(
+        self,
+        active: Tensor,
+        energy: Tensor,
+        new_x: Tensor,
+        new_energy: Tensor,
+        new_residual: Tensor,
+        allowance: Tensor,
+    ) -> tuple[Stagnation, Tensor]:
+        """The record after an iteration of the `active` entries from E `energy` to `new_energy` `[B]`
+        at `new_x` `[B, n, d]`, with `new_residual` `[B]` there and the line search's rounding
+        `allowance` `[B]` in J, and which entries now stop `[B]`."""
+        eps = torch.finfo(energy.dtype).eps
+        scale = torch.maximum(self.scale, new_energy.abs())
+        noise = torch.maximum(self.noise, allowance)
+        improved = new_residual < STALL_RESIDUAL_FRACTION * self.best
+        descended = energy - new_energy > torch.maximum(64 * eps * scale, noise)
+        progress = improved | descended
+        count = torch.where(active & ~progress, self.count + 1, torch.zeros_like(self.count))
+        better = new_residual < self.best
+        best_x = torch.where(better[:, None, None], new_x, self.best_x)
+        best = torch.where(better, new_residual, self.best)
+        record = Stagnation(best, best_x, scale, noise, count, self.window)
+        return record, active & (count >= self.window)
+
+    def rows(self, rows: Tensor) -> Stagnation:
+        """The record of the batch entries `rows` alone."""
+        return Stagnation(
+            self.best[rows],
+            self.best_x[rows],
+            self.scale[rows],
+            self.noise[rows],
+            self.count[rows],
+            self.window,
+        )
+
+    def best_of(self, x: Tensor, residual: Tensor, stopped: Tensor) -> tuple[Tensor, Tensor]:
+        """`x` `[B, n, d]` and `residual` `[B]`, with the best iterate where an entry `stopped` `[B]`
+        short of it."""
+        back = stopped & (self.best < residual)
+        return torch.where(back[:, None, None], self.best_x, x), torch.where(back, self.best, residual)
 
 
 def _rounding(x: Tensor, energy: Tensor) -> Tensor:
@@ -210,6 +322,8 @@ class LineStep:
         residual: the velocity residual there `[B]`, in m/s.
         unjudged: entries taken whole because neither the energy nor its slope along the step could
             judge it `[B]`.
+        allowance: the rounding of E the search allowed for `[B]`, in J: 64 ulps of |E|, or the
+            measured noise (`_noise_floor`) where it was measured.
     """
 
     step: Tensor
@@ -218,16 +332,23 @@ class LineStep:
     gradient: Tensor
     residual: Tensor
     unjudged: Tensor
+    allowance: Tensor
 
 
-# A predicted decrease above this fraction of |E| is far above any rounding noise measured (the
-# worst, a stiff rotated body, is ~1e-10 |E|): a trial that fails there fails on its merits, and the
-# noise is not measured (it costs `NOISE_SAMPLES` energy evaluations).
+# A predicted decrease above this fraction of |E| is far above any rounding noise measured relative
+# to |E| (the worst, a stiff rotated body, is ~1e-10 |E|). That bound fails where E itself nearly
+# vanishes at the minimum while its terms do not: an unloaded body at rest, whose elastic energy is
+# a sum of terms of size μV that cancel to 0. On the 3×3×3 box of E = 1e5 Pa restored from a random
+# scramble, |E| is 4e-13 J where the residual is 2.8e-8 m/s, its noise 4e-12 J, and the Newton
+# step's predicted decrease 1e-14 J: far below the noise, and above 1e-6 |E|. So the noise is also
+# measured wherever the directional derivatives accept the trial that the energy refuses (a
+# disagreement that rounding explains); only a trial that both refuse fails on its merits unmeasured
+# (measuring costs `NOISE_SAMPLES` energy evaluations).
 NOISE_RELEVANT_DECREASE = 1e-6
 
 
-def _noise_may_matter(energy: Tensor, slope: Tensor, step: Tensor) -> Tensor:
-    return -slope * step <= NOISE_RELEVANT_DECREASE * energy.abs()
+def _noise_may_matter(energy: Tensor, slope: Tensor, step: Tensor, slope_accepts: Tensor) -> Tensor:
+    return (-slope * step <= NOISE_RELEVANT_DECREASE * energy.abs()) | slope_accepts
 
 
 def _slope_decrease(slope: Tensor, trial_slope: Tensor, constant: float) -> Tensor:
@@ -270,12 +391,12 @@ def line_step(
 
     unjudged = -slope * initial <= rounding
     decrease = armijo(trial_energy, initial)
-    if not bool((decrease | ~_noise_may_matter(energy, slope, initial)).all()):
+    slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
+    if not bool((decrease | ~_noise_may_matter(energy, slope, initial, slope_decrease)).all()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = _noise_floor(objective, x, energy), True
         unjudged = -slope * initial <= rounding
         decrease = armijo(trial_energy, initial)
-    slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
     overshot = unjudged & ~slope_decrease & (slope < 0) & (trial_slope > slope)
     if bool(overshot.any()):
         # the minimiser of the quadratic through φ'(0) and φ'(t): below t/2 where the trapezoid
@@ -295,7 +416,9 @@ def line_step(
     # the energy cannot tell these from no change: their derivatives can
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
-        return LineStep(initial, trial_x, trial_energy, trial_gradient, trial_residual, unjudged & ~judged)
+        return LineStep(
+            initial, trial_x, trial_energy, trial_gradient, trial_residual, unjudged & ~judged, rounding
+        )
     step, _, unjudged = backtracking_line_search(
         objective,
         x,
@@ -310,7 +433,7 @@ def line_step(
     x_new = x + step[:, None, None] * direction
     new_energy, new_gradient = objective.energy_and_gradient(x_new)
     return LineStep(
-        step, x_new, new_energy, new_gradient, objective.residual(new_gradient), unjudged & ~judged
+        step, x_new, new_energy, new_gradient, objective.residual(new_gradient), unjudged & ~judged, rounding
     )
 
 

@@ -8,7 +8,8 @@ import torch
 from torch import Tensor
 
 from energysim.objective import Objective
-from energysim.optim.base import Solver, SolverResult, line_step
+from energysim.optim.arguments import require_integer
+from energysim.optim.base import LBFGS_STALL_ITERATIONS, Solver, SolverResult, Stagnation, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -51,8 +52,7 @@ class LBFGS(Solver):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.history_size < 1:
-            raise ValueError(f"history_size must be >= 1, got {self.history_size}")
+        require_integer(self.name, "history_size", self.history_size, minimum=1)
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
         self.prepare(objective)
@@ -65,6 +65,7 @@ class LBFGS(Solver):
         scale = torch.ones_like(energy)
         restarted = torch.zeros_like(energy, dtype=torch.bool)
         stalled = torch.zeros_like(restarted)
+        stagnation = Stagnation.start(x, energy, residual, LBFGS_STALL_ITERATIONS)
         iterations = 0
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
@@ -99,9 +100,13 @@ class LBFGS(Solver):
             keep = ~moved[:, None, None]
             x = torch.where(keep, x, search.x)
             gradient = torch.where(keep, gradient, search.gradient)
-            energy = torch.where(moved, search.energy, energy)
+            new_energy = torch.where(moved, search.energy, energy)
             residual = torch.where(moved, search.residual, residual)
-        return self.finish(objective, x, residual, iterations, 0)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
+            energy = new_energy
+            stalled = stalled | stuck
+        x, residual = stagnation.best_of(x, residual, stalled)
+        return self.finish(objective, x, residual, iterations, 0, stalled)
 
     @staticmethod
     def _two_loop(

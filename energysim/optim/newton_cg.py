@@ -33,7 +33,8 @@ from energysim.block_tridiagonal import LevelLayout, cached_layout, level_solve,
 from energysim.derivatives import HessianOperator
 from energysim.energies.inertia import Inertia
 from energysim.objective import Objective
-from energysim.optim.base import Solver, SolverResult, line_step
+from energysim.optim.arguments import require_bool, require_choice, require_integer, require_real
+from energysim.optim.base import Solver, SolverResult, Stagnation, line_step
 
 # The default DOF limits of the direct solve per batch entry (`NewtonCG.direct_max_dofs=None`).
 # Assembled eagerly, a direct solve builds dense or level blocks, whose cost grows much faster than
@@ -221,25 +222,22 @@ class NewtonCG(Solver):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.hessian not in ("elements", "autograd"):
-            raise ValueError(f"hessian must be 'elements' or 'autograd', got {self.hessian!r}")
-        if self.preconditioner not in ("block_jacobi", "none"):
-            raise ValueError(f"preconditioner must be 'block_jacobi' or 'none', got {self.preconditioner!r}")
-        if self.direct not in ("auto", "dense", "banded", "levels"):
-            raise ValueError(f"direct must be 'auto', 'dense', 'banded' or 'levels', got {self.direct!r}")
-        if self.indefinite not in ("shift", "cg"):
-            raise ValueError(f"indefinite must be 'shift' or 'cg', got {self.indefinite!r}")
-        if self.direct_max_dofs is not None and self.direct_max_dofs < 0:
-            raise ValueError(f"direct_max_dofs must be >= 0 or None, got {self.direct_max_dofs}")
+        name = self.name
+        require_integer(name, "max_cg_iter", self.max_cg_iter, minimum=1)
+        require_real(name, "forcing", self.forcing, above=0.0, below=1.0)
+        require_choice(name, "hessian", self.hessian, ("elements", "autograd"))
+        require_choice(name, "preconditioner", self.preconditioner, ("block_jacobi", "none"))
+        require_choice(name, "direct", self.direct, ("auto", "dense", "banded", "levels"))
+        require_choice(name, "indefinite", self.indefinite, ("shift", "cg"))
+        if self.direct_max_dofs is not None:
+            require_integer(name, "direct_max_dofs (or None)", self.direct_max_dofs, minimum=0)
+        require_bool(name, "project_hessian", self.project_hessian)
         if self.project_hessian and self.hessian != "elements":
             raise ValueError("project_hessian needs hessian='elements' (blocks to project)")
-        if not (0 < self.forcing < 1):
-            raise ValueError(f"forcing must lie in (0, 1), got {self.forcing}")
-        if not (0 <= self.compact_below < 1):
-            raise ValueError(f"compact_below must lie in [0, 1), got {self.compact_below}")
-        if self.reuse_factorization is not None and not (0 < self.reuse_factorization < 1):
-            raise ValueError(
-                f"reuse_factorization must be None or lie in (0, 1), got {self.reuse_factorization}"
+        require_real(name, "compact_below", self.compact_below, at_least=0.0, below=1.0)
+        if self.reuse_factorization is not None:
+            require_real(
+                name, "reuse_factorization (or None)", self.reuse_factorization, above=0.0, below=1.0
             )
 
     def minimize(self, objective: Objective, x0: Tensor) -> SolverResult:
@@ -255,7 +253,8 @@ class NewtonCG(Solver):
         # entries whose kept factorisation served poorly (`reuse_factorization`): factorise anew
         refresh = torch.zeros_like(steepest)
         # the whole batch's results; `entries` are the batch indices of the rows still computed on
-        solved_x, solved_residual = x, residual
+        solved_x, solved_residual, solved_stalled = x, residual, stalled
+        stagnation = Stagnation.start(x, energy, residual)
         entries = torch.arange(x.shape[0], device=x.device)
         used = [objective]
         for _ in range(self.max_iter):
@@ -266,6 +265,8 @@ class NewtonCG(Solver):
                 rows = torch.nonzero(active).reshape(-1)
                 solved_x = solved_x.index_copy(0, entries, x)
                 solved_residual = solved_residual.index_copy(0, entries, residual)
+                solved_stalled = solved_stalled.index_copy(0, entries, stalled)
+                stagnation = stagnation.rows(rows)
                 entries = entries[rows]
                 objective = self.prepare(root.subset(entries))
                 used.append(objective)
@@ -306,14 +307,19 @@ class NewtonCG(Solver):
             keep = worse[:, None, None]
             x = torch.where(keep, x, search.x)
             gradient = torch.where(keep, gradient, search.gradient)
-            energy = torch.where(worse, energy, search.energy)
+            new_energy = torch.where(worse, energy, search.energy)
             residual = torch.where(worse, residual, search.residual)
+            stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
+            energy = new_energy
+            stalled = stalled | stuck
+        x, residual = stagnation.best_of(x, residual, stalled)
         if len(used) > 1:
             x = solved_x.index_copy(0, entries, x)
             residual = solved_residual.index_copy(0, entries, residual)
+            stalled = solved_stalled.index_copy(0, entries, stalled)
             root.grad_evals = sum(part.grad_evals for part in used)
             root.energy_evals = sum(part.energy_evals for part in used)
-        return self.finish(root, x, residual, iterations, hvps)
+        return self.finish(root, x, residual, iterations, hvps, stalled)
 
     def direct_limit(self, *, compiled_band: bool = False) -> int:
         """The most DOFs per batch entry a direct solve takes: `direct_max_dofs`, or where that is
