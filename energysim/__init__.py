@@ -22,15 +22,36 @@ from energysim.energies import (
     Springs,
     Viscosity,
 )
-from energysim.explicit import InstabilityError
-from energysim.implicit import GradientError
+from energysim.integrators.adjoint import GradientError
+from energysim.integrators.explicit import InstabilityError
+from energysim.integrators.rollout import rollout
+from energysim.integrators.step import StepResult, solve_static, stable_substeps, step, timestep
 from energysim.mesh import MeshFileError, MeshFileNotFoundError, SimplexMesh, TetMesh, TriMesh, load_mesh
-from energysim.objective import Objective
-from energysim.optim import LBFGS, Adam, ConvergenceError, ConvergenceWarning, NewtonCG, Solver, SolverResult
-from energysim.rollout import rollout
-from energysim.scene import EXPLICIT_INTEGRATORS, IMPLICIT_INTEGRATORS, INTEGRATORS, Scene
-from energysim.step import StepResult, solve_static, stable_substeps, step, timestep
+from energysim.model.scene import EXPLICIT_INTEGRATORS, IMPLICIT_INTEGRATORS, INTEGRATORS, Scene
+from energysim.objective.objective import Objective
+from energysim.solvers import (
+    LBFGS,
+    Adam,
+    ConvergenceError,
+    ConvergenceWarning,
+    NewtonCG,
+    Solver,
+    SolverResult,
+)
 from energysim.viewer import Viewer
+
+# Sub-packages that pull in optional or heavier dependencies load on first use: `es.export`
+# (meshio, pyvista on render) and `es.envs` (Gymnasium), so that `import energysim` stays light.
+_LAZY_SUBPACKAGES = ("envs", "export")
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY_SUBPACKAGES:
+        import importlib
+
+        return importlib.import_module(f"energysim.{name}")
+    raise AttributeError(f"module 'energysim' has no attribute {name!r}")
+
 
 __all__ = [
     "ActuatedSprings",

@@ -36,8 +36,8 @@ from energysim.mesh.io import (
     reading,
     simplices_from_meshio,
 )
-from energysim.optim import Solver
-from energysim.scene import Scene
+from energysim.model.scene import Scene
+from energysim.solvers import Solver
 
 if TYPE_CHECKING:
     from importlib.resources.abc import Traversable

@@ -62,7 +62,7 @@ class Rollout:
 
 def make_solver(name: str, tol: float, compile: bool = False) -> es.Solver:
     """The optimizer named on the command line, stopping at velocity residual `tol` (m/s), with
-    compiled objective evaluations if `compile` (see `energysim.compiled`)."""
+    compiled objective evaluations if `compile` (see `energysim.objective.compiled`)."""
     if name == "newton-cg":
         return es.NewtonCG(tol=tol, compile=compile)
     if name == "lbfgs":

@@ -35,7 +35,7 @@ the physics), and this beam's sag (about 0.7 m for a 1 m beam) is far outside li
 linear scikit-fem static solution is no reference for it.
 
 Runs. energysim: Newton–CG with each implicit integrator of `--integrators` (implicit Euler: one
-solve per step, first order; TR-BDF2: two solves per step, second order; see `energysim.step.step`) at
+solve per step, first order; TR-BDF2: two solves per step, second order; see `es.step`) at
 h = 1/24 … 1/240 s and the tolerances `--tols`, the explicit leapfrog (position Verlet, second
 order, one gradient per substep, no solve) at `--leapfrog-substeps` substeps per 1/12 s, and the
 reference's own runs (tol 1e-9 m/s, tighter

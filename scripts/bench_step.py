@@ -40,9 +40,9 @@ from _common import save_figure, write_csv
 
 import energysim as es
 from energysim.contact import LaggedFriction
-from energysim.derivatives import element_hessian
-from energysim.implicit import step_terms
-from energysim.objective import Objective
+from energysim.integrators.adjoint import step_terms
+from energysim.objective.derivatives import element_hessian
+from energysim.objective.objective import Objective
 
 # cells along (x, y, z) for about 1k, 10k and 50k tets (6 tets per cell)
 SIZES = {"tiny": (6, 1, 1), "1k": (15, 3, 3), "10k": (35, 7, 7), "50k": (60, 12, 12)}
@@ -601,7 +601,7 @@ def landing_markdown(
         f"The same Newton–CG steps (tol {args.tol:g} m/s, from every timed reference state, "
         f"{args.landing_repeats}× each, the three scenes interleaved) without an obstacle, with the ground "
         f"{FAR_BELOW:g} m below (no vertex within d̂) and with the ground at y = 0. Without obstacles "
-        "the step objective (`energysim.implicit.step_terms`) holds no contact term, and "
+        "the step objective (`energysim.integrators.adjoint.step_terms`) holds no contact term, and "
         "`Objective.max_step` finds no term that limits a step, so no CCD runs: the scene pays nothing "
         "for contact. An out-of-reach ground adds its (all-zero) barrier to every evaluation, one CCD "
         "per line search and per warm-start candidate, and lets the warm start also try x_n (iteration "

@@ -74,7 +74,7 @@ from tqdm import tqdm
 
 import energysim as es
 from energysim.creatures import Creature, load_creature
-from energysim.objective import Objective
+from energysim.objective.objective import Objective
 
 DEFAULT_DTS = ("1/24", "1/60", "1/120", "1/240", "1/480")
 DEFAULT_TOLS = (1e-2, 1e-3, 1e-4, 1e-6)  # m/s

@@ -59,7 +59,7 @@ from torch import Tensor, nn
 from tqdm import tqdm
 
 import energysim as es
-from energysim.optim import ConvergenceError
+from energysim.solvers import ConvergenceError
 
 METHOD = "gradient"
 

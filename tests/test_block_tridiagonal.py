@@ -9,8 +9,10 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.banded import band_cholesky_solve, prefer_band
-from energysim.block_tridiagonal import (
+from energysim.creatures import resting_state
+from energysim.integrators.adjoint import step_terms
+from energysim.linalg.banded import band_cholesky_solve, prefer_band
+from energysim.linalg.block_tridiagonal import (
     block_cholesky,
     block_cholesky_solve,
     from_levels,
@@ -18,10 +20,8 @@ from energysim.block_tridiagonal import (
     to_levels,
     vertex_levels,
 )
-from energysim.creatures import resting_state
-from energysim.implicit import step_terms
-from energysim.objective import Objective
-from energysim.optim.newton_cg import INDEFINITE_SHIFTS
+from energysim.objective.objective import Objective
+from energysim.solvers.newton_cg import INDEFINITE_SHIFTS
 
 RTOL = 1e-10
 
@@ -29,7 +29,7 @@ RTOL = 1e-10
 def _objective(
     scene: es.Scene, state: torch.Tensor, action: torch.Tensor | None
 ) -> tuple[Objective, torch.Tensor]:
-    """The step objective at the previous positions, built as `energysim.step.step` builds it."""
+    """The step objective at the previous positions, built as `energysim.integrators.step.step` builds it."""
     x, v = scene.split_state(state)
     terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, v, scene.free)
     objective = Objective(
@@ -257,7 +257,7 @@ def test_backward_through_the_band_solve_equals_the_dense_one(monkeypatch: pytes
         return start.grad
 
     band = gradient()
-    monkeypatch.setattr(sys.modules["energysim.implicit"], "prefer_band", lambda *args: False)
+    monkeypatch.setattr(sys.modules["energysim.integrators.adjoint"], "prefer_band", lambda *args: False)
     dense = gradient()
     assert float((band - dense).abs().max()) < 1e-9 * float(dense.abs().max())
 

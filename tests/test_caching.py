@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from energysim.caching import IdentityCache
+from energysim.linalg.caching import IdentityCache
 
 
 def test_hits_return_the_built_value_and_only_the_same_objects_hit():

@@ -11,12 +11,12 @@ import torch
 from conftest import small_box
 
 import energysim as es
-from energysim import compiled
 from energysim.contact.friction import LaggedFriction
 from energysim.contact.obstacles import CCD_SAFETY
 from energysim.creatures import load_creature, resting_state
-from energysim.implicit import step_terms
-from energysim.objective import Objective
+from energysim.integrators.adjoint import step_terms
+from energysim.objective import compiled
+from energysim.objective.objective import Objective
 
 
 def _worm_objective(batch: int = 1) -> tuple[es.Scene, Objective, torch.Tensor]:
@@ -225,7 +225,7 @@ def test_the_compiled_energy_check_sums_the_same_energies_as_the_eager_one():
     # every kind of scene term (elastic, muscles, gravity, the ground's barrier), each at x itself
     scene, objective, x = _worm_objective(batch=2)
     x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
-    energies = sys.modules["energysim.step"]._energies
+    energies = sys.modules["energysim.integrators.step"]._energies
     v = torch.randn(x.shape, dtype=x.dtype)
     eager = energies(scene, x, v, objective.action, compiled=False)
     fast = energies(scene, x, v, objective.action, compiled=True)
@@ -320,7 +320,7 @@ def test_a_compiled_band_hessian_takes_the_direct_solve_past_the_eager_limit():
 
 def test_small_matmul_traced_by_the_compiler_equals_the_matrix_product():
     # the broadcast form the compiler fuses, against `@`, with a batch broadcast as the Hessian uses it
-    from energysim.small_matmul import small_matmul
+    from energysim.linalg.small_matmul import small_matmul
 
     generator = torch.Generator().manual_seed(0)
     strain_map_t = torch.randn(5, 12, 9, generator=generator, dtype=torch.float64)

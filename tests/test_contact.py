@@ -14,7 +14,7 @@ import energysim as es
 from energysim.contact import barrier, barrier_derivatives, mollified_slip
 from energysim.contact.friction import LaggedFriction
 from energysim.contact.obstacles import CCD_SAFETY
-from energysim.derivatives import autograd_element_hessian, energy_and_gradient
+from energysim.objective.derivatives import autograd_element_hessian, energy_and_gradient
 
 G = 9.81
 

@@ -14,9 +14,9 @@ import torch
 
 import energysim as es
 from energysim.creatures import CREATURES, Creature, default_meshes_dir, load_creature, shipped_meshes_dir
-from energysim.derivatives import energy_and_gradient
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.mesh import TetMesh, TriMesh, signed_volumes
+from energysim.objective.derivatives import energy_and_gradient
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 if str(SCRIPTS) not in sys.path:

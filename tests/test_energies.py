@@ -8,13 +8,17 @@ import torch
 from conftest import random_rotation, small_box
 
 import energysim as es
-from energysim.derivatives import autograd_element_hessian, energy_and_gradient, hessian_vector_product
 from energysim.fem.materials import (
     lame_parameters,
     stable_neo_hookean_density,
     stable_neo_hookean_stress_hessian,
 )
-from energysim.implicit import step_terms
+from energysim.integrators.adjoint import step_terms
+from energysim.objective.derivatives import (
+    autograd_element_hessian,
+    energy_and_gradient,
+    hessian_vector_product,
+)
 
 
 def bound_term(term, mesh):

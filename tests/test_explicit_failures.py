@@ -16,9 +16,9 @@ import pytest
 import torch
 
 import energysim as es
-from energysim import explicit
 from energysim.creatures import load_creature, resting_state, scene_ground
 from energysim.energies.muscles import check_action_width
+from energysim.integrators import explicit
 
 gymnasium = pytest.importorskip("gymnasium")
 

@@ -8,10 +8,10 @@ import torch
 from conftest import random_rotation, small_box
 
 import energysim as es
-from energysim.derivatives import autograd_element_hessian, energy_and_gradient
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.fem.kinematics import deformation_gradient, simplex_rest_frame
 from energysim.fem.materials import stable_neo_hookean_density
+from energysim.objective.derivatives import autograd_element_hessian, energy_and_gradient
 
 C = 0.3  # max_contraction used throughout
 

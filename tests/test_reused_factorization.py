@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.objective import Objective
+from energysim.objective.objective import Objective
 
 TOL = 1e-8  # m/s: tight, so that both solvers land on the same minimiser to ~h·tol
 

@@ -18,7 +18,8 @@ import torch
 from conftest import rigid_alignment_error
 
 import energysim as es
-from energysim.objective import Objective
+from energysim.objective.objective import Objective
+from energysim.solvers.base import line_step
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -110,7 +111,7 @@ def test_the_newton_step_the_energy_cannot_judge_is_taken_whole():
     direction = direction.reshape(x.shape)
     predicted = -0.5 * float((gradient * direction).sum())
     assert 0 < predicted < 1e-14
-    search = es.optim.base.line_step(objective, x, energy, gradient, direction)
+    search = line_step(objective, x, energy, gradient, direction)
     assert float(search.step) == 1.0
     assert float(search.residual) < 1e-3 * float(objective.residual(gradient))
 

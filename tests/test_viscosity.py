@@ -12,8 +12,8 @@ import torch
 from conftest import random_rotation
 
 import energysim as es
-from energysim import explicit
 from energysim.energies.base import scatter_vertices
+from energysim.integrators import explicit
 
 
 def viscous_box(viscosity: float = 30.0) -> tuple[es.Scene, es.Viscosity]:

@@ -21,8 +21,8 @@ from torch import Tensor
 from energysim.contact.barrier import barrier, barrier_derivatives, default_barrier_stiffness
 from energysim.contact.friction import LaggedFriction
 from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter, scatter_vertices
-from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
+from energysim.mesh.indices import as_indices
 from energysim.mesh.simplex import format_indices
 
 # the fraction of the time of impact a line search may start from (ipc-toolkit's default)

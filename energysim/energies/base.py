@@ -4,7 +4,7 @@ A term is a small, pure function of positions: `term(x, action) -> energy`, with
 `[B, n, d]` (a batch of B configurations of n vertices in d = 2 or 3 dimensions) and the energy
 of shape `[B]`, in J. Rest data and material constants are buffers, so `.to(device, dtype)`
 moves them; a constant may require grad. Terms never compute forces: gradients, Hessian-vector
-products and Hessian blocks come from autograd in `energysim.derivatives`.
+products and Hessian blocks come from autograd in `energysim.objective.derivatives`.
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ import torch
 from torch import Tensor
 
 from energysim.energies.springs import Springs
-from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
+from energysim.mesh.indices import as_indices
 
 
 def actuator_counts(terms: Iterable[object]) -> dict[str, int]:

@@ -21,8 +21,8 @@ from energysim.fem.materials import (
     stable_neo_hookean_stress_entries,
     stable_neo_hookean_stress_hessian,
 )
+from energysim.linalg.small_matmul import small_matmul
 from energysim.mesh import SimplexMesh
-from energysim.small_matmul import small_matmul
 
 
 class NeoHookean(ElementEnergy):
@@ -130,7 +130,7 @@ class NeoHookean(ElementEnergy):
 
     def batch_last_forces(self, corners: list[list[Tensor]], action: Tensor | None) -> list[list[Tensor]]:
         """∂E/∂x entry by entry with the batch innermost, for compiled explicit steps of many bodies
-        (`energysim.compiled`): `corners[i][b]` is coordinate i of every element's corner b, shape
+        (`energysim.objective.compiled`): `corners[i][b]` is coordinate i of every element's corner b, shape
         `[m, B]` in m, and the result's `[i][b]` is ∂E/∂x_bi, `[m, B]` in N.
 
         With F_ij = Σ_b x_bi ∇N_bj and P in entries (`stable_neo_hookean_stress_entries`), the whole
@@ -146,7 +146,7 @@ class NeoHookean(ElementEnergy):
 
         A closed-form kernel for speed (the generic path differentiates `element_energy` twice);
         tests check the two agree. With F = Σ_b x_b ⊗ ∇N_b, K_(bk),(cl) = V Σ_jq ∇N_bj ∂²ψ/∂F_kj∂F_lq ∇N_cq.
-        Compiled on the CPU, its two products fuse into the generated loops (`energysim.small_matmul`).
+        Compiled on the CPU, its two products fuse into the generated loops (`energysim.linalg.small_matmul`).
         """
         mu, lam = self.lame()
         F = deformation_gradient(element_positions, self.rest_edge_inverse)

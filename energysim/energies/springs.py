@@ -6,8 +6,8 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
-from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
+from energysim.mesh.indices import as_indices
 
 
 def spring_energy(length: Tensor, stiffness: Tensor, rest_length: Tensor) -> Tensor:

@@ -6,7 +6,7 @@ so the viscous stress is P = ∂D/∂Ḟ / V = 2η F Ė: Newtonian at small stra
 every rigid motion (FᵀḞ is then skew), so it damps deformation, never a translation or a spin.
 The forces are −∂D/∂v and they take power 2D out of the body.
 
-An explicit step (`energysim.explicit`) takes the force in each kick, at the kick's velocity. An
+An explicit step (`energysim.integrators.explicit`) takes the force in each kick, at the kick's velocity. An
 implicit step minimises an energy of positions only; there the term adds h·D(x_n, (x − x_n)/h)
 with F lagged at the step's start, `LaggedViscosity`, whose gradient is the viscous force at the
 step's end velocity (backward Euler, as the rest of the step).

@@ -32,9 +32,9 @@ from torch import Tensor
 from energysim.creatures import CREATURES, load_creature, resting_state, scene_ground
 from energysim.energies import Viscosity
 from energysim.envs.observation import ObservationLayout, centre_of_mass, farthest_point_markers, observe
-from energysim.optim import ConvergenceError, NewtonCG
-from energysim.scene import INTEGRATORS
-from energysim.step import stable_substeps, step
+from energysim.integrators.step import stable_substeps, step
+from energysim.model.scene import INTEGRATORS
+from energysim.solvers import ConvergenceError, NewtonCG
 
 # τ of the activation dynamics the explicit integrator gets by default: an elastic body takes in
 # energy at every jump of its muscles' rest lengths. With instant random activations and no

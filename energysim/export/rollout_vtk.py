@@ -25,7 +25,7 @@ from energysim.viewer.scalars import strain_energy_density
 from .series import VTKSeries
 
 if TYPE_CHECKING:
-    from energysim.scene import Scene
+    from energysim.model.scene import Scene
 
 
 def _stack(values: Tensor | Sequence[Tensor], name: str) -> Tensor:
@@ -46,7 +46,7 @@ def _stack(values: Tensor | Sequence[Tensor], name: str) -> Tensor:
 def _per_state_actions(actions: Tensor, num_states: int) -> Tensor:
     """One action per state, `[F, a]`: a row per state is kept; a row per step shifts by one.
 
-    With one action per step (as `energysim.rollout` takes them) state k > 0 was solved with the
+    With one action per step (as `energysim.integrators.rollout` takes them) state k > 0 was solved with the
     action of step k − 1, so that is the activation it shows; the initial state had none (zero).
     """
     if actions.ndim != 2 or actions.shape[0] not in (num_states, num_states - 1):
@@ -144,7 +144,7 @@ def export_rollout(
         states: F states, a stack `[F, 2·num_dofs]` or a list of `[2·num_dofs]` (one batch entry:
             index a batched rollout first).
         folder: output folder (created with its parents).
-        actions: `[F − 1, a]` (one per step, as `energysim.rollout` takes them: frame k shows the action
+        actions: `[F − 1, a]` (one per step, as `es.rollout` takes them: frame k shows the action
             of the step that ended there, frame 0 zero) or `[F, a]` (one per state).
         times: time of each state in s, shape `[F]`, strictly increasing; default k · `scene.dt`.
         every: write every `every`-th state, and always the last.

@@ -73,7 +73,7 @@ def deformation_gradient_entries(corners: list[list[Tensor]], shape_gradient_t: 
     """F_ij = Σ_b x_bi ∇N_bj entry by entry, with the batch innermost: `corners[i][b]` is coordinate
     i of every element's corner b, `[m, B]` (positions in m, or velocities, which give Ḟ);
     `shape_gradient_t` is ∇N as `[k, d, m]`. Returns F[i][j], `[m, B]` each. Scalar arithmetic that a
-    compiler fuses into one loop over the elements (see `energysim.compiled`)."""
+    compiler fuses into one loop over the elements (see `energysim.objective.compiled`)."""
     dim = len(corners)
     return [
         [sum(corners[i][b] * shape_gradient_t[b, j][:, None] for b in range(dim + 1)) for j in range(dim)]

@@ -143,7 +143,7 @@ def stable_neo_hookean_stress_entries(F: list[list[Tensor]], mu: Tensor, lam: Te
 
     The same formulas, written as scalar expressions: compiled, they fuse into one loop over the
     entries' elements, where the matrix form's reductions over the last axes and stacks each end a
-    loop and store their intermediates (`energysim.compiled`'s batch-last leapfrog, 2.5 → 1.3 ms a
+    loop and store their intermediates (`energysim.objective.compiled`'s batch-last leapfrog, 2.5 → 1.3 ms a
     substep for 64 worms). The tests check the two forms agree.
 
     Args:

@@ -1,12 +1,12 @@
-"""Optimizers for the step objective. All share one contract and one stopping rule.
+"""Deprecated alias of `energysim.solvers`, kept so that existing imports keep working."""
 
-`solver.minimize(objective, x0) -> SolverResult`, stopping when the velocity residual
-‖h M⁻¹ ∇E‖∞ falls below `tol` (m/s).
-"""
+import warnings
 
-from energysim.optim.adam import Adam
-from energysim.optim.base import ConvergenceError, ConvergenceWarning, Solver, SolverResult
-from energysim.optim.lbfgs import LBFGS
-from energysim.optim.newton_cg import NewtonCG
+from energysim.solvers import *  # noqa: F403
+from energysim.solvers import __all__  # noqa: F401
 
-__all__ = ["LBFGS", "Adam", "ConvergenceError", "ConvergenceWarning", "NewtonCG", "Solver", "SolverResult"]
+warnings.warn(
+    "energysim.optim is now energysim.solvers; import from there (or use es.NewtonCG, es.LBFGS, es.Adam)",
+    DeprecationWarning,
+    stacklevel=2,
+)

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies import NeoHookean
-from energysim.scene import Scene
+from energysim.model.scene import Scene
 
 
 def strain_energy_density(scene: Scene, states: Tensor | Sequence[Tensor]) -> Tensor:

@@ -36,7 +36,7 @@ from .httpd import Server, ServerLimits
 from .trajectory import Marker, Surface
 
 if TYPE_CHECKING:
-    from energysim.scene import Scene
+    from energysim.model.scene import Scene
 
 logger = logging.getLogger(__name__)
 

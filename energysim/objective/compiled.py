@@ -4,12 +4,12 @@ A small body's Newton iteration is hundreds of tiny tensor operations, and in ea
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
 2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Seven
 functions are compiled, each over the objective's whole list of terms: the energy, the energy with
-its gradient, a run of explicit leapfrog substeps (`energysim.explicit`), every term's energy
+its gradient, a run of explicit leapfrog substeps (`energysim.integrators.explicit`), every term's energy
 apart (TR-BDF2's energy check), a line search's first trial (the CCD step limit, then the energy,
 gradient, slopes and residual where it lands), the warm start's candidates cut back to
 admissible steps with their energies, and the Hessian of a small system, its element blocks
 scattered straight into a dense `[B, N, N]` matrix or into LAPACK's band storage
-(`energysim.banded`), no CSR in between.
+(`energysim.linalg.banded`), no CSR in between.
 They compute what the eager paths compute, up to the order of floating-point operations (the
 tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
 
@@ -34,17 +34,17 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from energysim.assembly import dof_indices
-from energysim.banded import (
+from energysim.contact.obstacles import project_contacts
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, is_dissipative
+from energysim.linalg.assembly import dof_indices
+from energysim.linalg.banded import (
     band_diagonal_positions,
     band_length,
     band_positions,
     eliminate_fixed_in_bands,
 )
-from energysim.block_tridiagonal import LevelLayout
-from energysim.caching import IdentityCache
-from energysim.contact.obstacles import project_contacts
-from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, is_dissipative
+from energysim.linalg.block_tridiagonal import LevelLayout
+from energysim.linalg.caching import IdentityCache
 
 
 def has_closed_forms(terms: Sequence[EnergyTerm], *, hessian: bool) -> bool:
@@ -149,7 +149,7 @@ def _leapfrog(
     h: Tensor,
     substeps: int,
 ) -> tuple[Tensor, Tensor]:
-    # `energysim.explicit.leapfrog` with the closed-form gradients and the contact projections,
+    # `energysim.integrators.explicit.leapfrog` with the closed-form gradients and the contact projections,
     # unrolled; the energies it computes along the way are dead code that the compiler drops
     if obstacles:
         v = project_contacts(obstacles, free, x, v, 0.5 * h)
@@ -307,7 +307,7 @@ _SOURCES: dict[str, Callable] = {
 # took the worm's compiled band Hessian from 0.85 to 0.53 ms (360 tets, one thread; the fibre
 # muscles' blocks alone from 0.31 to 0.07 ms). The energy and gradient gain nothing from it (their
 # intermediates are read once), and GPU code keeps Inductor's defaults. The neo-Hookean blocks' two
-# strain-map products are written so that Inductor fuses them too (`energysim.small_matmul`):
+# strain-map products are written so that Inductor fuses them too (`energysim.linalg.small_matmul`):
 # 0.53 → 0.46 ms for one worm, 31 → 25 ms for 64, 1.14 → 0.97 ms for the 810-tet cantilever
 # (the fastest of 30–200 calls each way, alternating in one process).
 _CPU_OPTIONS: dict[str, dict[str, object]] = {"hessian_entries": {"realize_opcount_threshold": 4}}
@@ -441,7 +441,7 @@ def leapfrog(
     h: float,
     substeps: int,
 ) -> tuple[Tensor, Tensor] | None:
-    """`energysim.explicit.leapfrog` over the force `terms`, with `obstacles` projecting the
+    """`energysim.integrators.explicit.leapfrog` over the force `terms`, with `obstacles` projecting the
     velocities (`project_contacts`), by compiled calls of unrolled substeps (`inverse_mass` `[n]`
     zero on pinned vertices), or None. Batches of `BATCH_LAST_MIN_BATCH` or more run batch-last
     (`batch_last_plan`) where the terms allow it."""
@@ -539,7 +539,7 @@ def dense_hessian(
         return None
     dense = flat.reshape(batch, size, size)
     if not bool(free.all()):
-        # fixed DOFs get the rows and columns of the identity, as in `energysim.assembly.assemble`
+        # fixed DOFs get the rows and columns of the identity, as in `energysim.linalg.assembly.assemble`
         fixed = (~free)[:, None].expand(n, dim).reshape(-1)
         kept = (~fixed).to(x.dtype)
         dense = dense * kept[:, None] * kept[None, :] + torch.diag(fixed.to(x.dtype))
@@ -549,7 +549,7 @@ def dense_hessian(
 def band_hessian(
     terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
 ) -> Tensor | None:
-    """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.banded`), fixed DOFs
+    """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
     eliminated, by the compiled function, or None."""
     batch, n, dim = x.shape
     groups = tuple(

@@ -8,8 +8,8 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from energysim.scene import Scene
-from energysim.step import timestep
+from energysim.integrators.step import timestep
+from energysim.model.scene import Scene
 
 
 def _count(value: object, name: str, *, allow_none: bool = False) -> int | None:
@@ -46,7 +46,7 @@ def rollout(
         actions: one action per step, shape `[T, a]` or `[T, B, a]`, or None.
         steps: T when `actions` is None.
         checkpoint_every: steps per checkpointed segment; 0 keeps every step's tensors.
-        grad_mode: "implicit" or "unrolled" (see `energysim.step`).
+        grad_mode: "implicit" or "unrolled" (see `energysim.integrators.step`).
     """
     steps = _count(steps, "steps", allow_none=True)
     checkpoint_every = _count(checkpoint_every, "checkpoint_every")

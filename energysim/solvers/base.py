@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.objective import Objective
-from energysim.optim.arguments import require_bool, require_integer, require_real
+from energysim.objective.objective import Objective
+from energysim.solvers.arguments import require_bool, require_integer, require_real
 
 
 class ConvergenceWarning(RuntimeWarning):
@@ -72,7 +72,7 @@ class Solver:
         tol: stop when ‖h M⁻¹ ∇E‖∞ < tol, in m/s.
         max_iter: most outer iterations.
         strict: raise `ConvergenceError` when `tol` is not reached, instead of warning.
-        compile: evaluate the objective through `torch.compile`d functions (`energysim.compiled`):
+        compile: evaluate the objective through `torch.compile`d functions (`energysim.objective.compiled`):
             the same numbers at a fraction of the cost for small bodies, after a compilation of
             seconds per scene. Off by default.
     """

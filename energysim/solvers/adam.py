@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.objective import Objective
-from energysim.optim.arguments import require_integer, require_real
-from energysim.optim.base import Solver, SolverResult
+from energysim.objective.objective import Objective
+from energysim.solvers.arguments import require_integer, require_real
+from energysim.solvers.base import Solver, SolverResult
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from energysim.assembly import dof_indices
-from energysim.block_tridiagonal import LevelLayout
-from energysim.caching import IdentityCache
+from energysim.linalg.assembly import dof_indices
+from energysim.linalg.block_tridiagonal import LevelLayout
+from energysim.linalg.caching import IdentityCache
 
 # LAPACK's band Cholesky factor of one matrix, in lower band storage (Fortran order, `[u + 1, N]`)
 BandFactor = np.ndarray
@@ -143,7 +143,7 @@ def band_diagonal_positions(layout: LevelLayout) -> Tensor:
 
 def eliminate_fixed_in_bands(bands: Tensor, layout: LevelLayout, fixed_dofs: Tensor) -> Tensor:
     """`bands` `[B, N, u + 1]` with the rows and columns of `fixed_dofs` (`[N]` bool, DOF order)
-    replaced by the identity's, as `energysim.assembly.assemble` eliminates them."""
+    replaced by the identity's, as `energysim.linalg.assembly.assemble` eliminates them."""
     mask, identity = _elimination(layout, fixed_dofs, bands.dtype)
     bands = bands * mask
     bands[..., 0] += identity

@@ -34,10 +34,10 @@ import torch
 from torch import Tensor
 
 from energysim.contact.obstacles import HalfSpace, Obstacle, SphereObstacle
-from energysim.derivatives import HessianOperator
 from energysim.energies.base import EnergyTerm, is_dissipative, limits_steps
 from energysim.mesh.simplex import format_indices
-from energysim.optim.base import ConvergenceError
+from energysim.objective.derivatives import HessianOperator
+from energysim.solvers.base import ConvergenceError
 
 # The most energy an explicit step may gain: `ENERGY_GAIN_LIMIT` of its energy of motion and
 # deformation (kinetic plus the nonlinear terms') at its start, plus `ENERGY_GAIN_FLOOR` of that at

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.assembly import SparsityPattern
-from energysim.caching import IdentityCache
+from energysim.linalg.assembly import SparsityPattern
+from energysim.linalg.caching import IdentityCache
 
 # a pseudo-peripheral start is found by a few sweeps of breadth-first search (George & Liu);
 # more than this many hardly ever lengthens the level structure further
@@ -113,7 +113,7 @@ class LevelLayout:
         padding: the buffer's values before the entries land, shape `[(2L−1)·S²]`: 1 on every
             diagonal slot, so padding DOFs get identity rows (real DOFs' diagonals are overwritten).
         band_order: the DOFs level by level without padding, shape `[n·d]` (position → DOF): an
-            ordering in which the matrix is banded (`energysim.banded`).
+            ordering in which the matrix is banded (`energysim.linalg.banded`).
         band_position: the inverse of `band_order` (DOF → position), shape `[n·d]`.
         half_bandwidth: u, the largest |i − j| of a stored entry in that ordering.
         band_entries: flat indices into a dense `[N, N]` matrix of LAPACK's lower band storage,

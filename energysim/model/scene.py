@@ -9,12 +9,12 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from energysim.converted import ConvertedMirror, check_dtype
 from energysim.energies.base import EnergyTerm, check_positive
 from energysim.energies.gravity import Gravity
-from energysim.indices import as_indices
 from energysim.mesh import SimplexMesh
-from energysim.optim import NewtonCG, Solver
+from energysim.mesh.indices import as_indices
+from energysim.model.converted import ConvertedMirror, check_dtype
+from energysim.solvers import NewtonCG, Solver
 
 IMPLICIT_INTEGRATORS = ("implicit_euler", "tr_bdf2")
 EXPLICIT_INTEGRATORS = ("leapfrog",)
@@ -34,7 +34,7 @@ class Scene(nn.Module):
         integrator: "implicit_euler" (one solve per step, first order, damps oscillations),
             "tr_bdf2" (two solves per step, second order, keeps slow oscillations) or "leapfrog"
             (explicit position Verlet, second order, no solve, no contact, stable only below the
-            Courant limit: `energysim.explicit`); see `step`.
+            Courant limit: `energysim.integrators.explicit`); see `step`.
         substeps: the leapfrog substeps of dt / substeps one step takes (implicit steps take dt
             whole and need 1).
 
@@ -171,7 +171,7 @@ class Scene(nn.Module):
     def matching(self, like: Tensor, what: str = "the state") -> Scene:
         """This scene in the dtype and on the device of `like` (a state or positions): the scene
         itself where they are its own, else a converted copy, kept and brought up to date with this
-        scene on every call (`energysim.converted`). This scene is never changed, and gradients
+        scene on every call (`energysim.model.converted`). This scene is never changed, and gradients
         through the copy reach this scene's tensors that require grad.
 
         Args:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.caching import IdentityCache
+from energysim.linalg.caching import IdentityCache
 
 
 @dataclass(frozen=True)

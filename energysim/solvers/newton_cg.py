@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.assembly import cached_pattern
-from energysim.banded import (
+from energysim.energies.inertia import Inertia
+from energysim.linalg.assembly import cached_pattern
+from energysim.linalg.banded import (
     BandFactor,
     band_cholesky_solve,
     factorise_bands,
@@ -29,12 +30,11 @@ from energysim.banded import (
     solve_bands,
     substitute_bands,
 )
-from energysim.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
-from energysim.derivatives import HessianOperator
-from energysim.energies.inertia import Inertia
-from energysim.objective import Objective
-from energysim.optim.arguments import require_bool, require_choice, require_integer, require_real
-from energysim.optim.base import Solver, SolverResult, Stagnation, line_step
+from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
+from energysim.objective.derivatives import HessianOperator
+from energysim.objective.objective import Objective
+from energysim.solvers.arguments import require_bool, require_choice, require_integer, require_real
+from energysim.solvers.base import Solver, SolverResult, Stagnation, line_step
 
 # The default DOF limits of the direct solve per batch entry (`NewtonCG.direct_max_dofs=None`).
 # Assembled eagerly, a direct solve builds dense or level blocks, whose cost grows much faster than
@@ -65,7 +65,7 @@ def _cholesky_directions(
 ) -> tuple[Tensor, Tensor]:
     """Solve dense `[B, N, N]` systems for `rhs` `[B, n, d]` by Cholesky where positive definite;
     returns the solutions (zero elsewhere) and which `wanted` entries they solved. With `band`, the
-    factorisation is LAPACK's band Cholesky in that layout's ordering (`energysim.banded`)."""
+    factorisation is LAPACK's band Cholesky in that layout's ordering (`energysim.linalg.banded`)."""
     if band is not None:
         return _band_directions(band_cholesky_solve(dense, rhs.reshape(rhs.shape[0], -1), band), rhs, wanted)
     factor, info = torch.linalg.cholesky_ex(dense)
@@ -164,9 +164,9 @@ class NewtonCG(Solver):
             straight into band storage (`compile=True`, the band method, on the CPU).
         direct: how the direct solve factorises. "dense": one dense `[N, N]` Cholesky per batch
             entry (N = n·d), ≈ B·N³/3 flops. "banded": LAPACK's band Cholesky in the level order
-            (`energysim.banded`), ≈ B·N·u² flops for half-bandwidth u, one call per entry, CPU only
+            (`energysim.linalg.banded`), ≈ B·N·u² flops for half-bandwidth u, one call per entry, CPU only
             (elsewhere it factorises dense). "levels": block-tridiagonal Cholesky over breadth-first
-            vertex levels (`energysim.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
+            vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
             picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18,
             S = 27, u = 44; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),

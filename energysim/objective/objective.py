@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim import compiled as compiled_functions
-from energysim.block_tridiagonal import LevelLayout
-from energysim.derivatives import HessianOperator, energy_and_gradient, hessian_operator
 from energysim.energies.base import EnergyTerm, has_element_blocks
+from energysim.linalg.block_tridiagonal import LevelLayout
+from energysim.objective import compiled as compiled_functions
+from energysim.objective.derivatives import HessianOperator, energy_and_gradient, hessian_operator
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class Objective:
         subset: builds the objective of some batch entries alone (their indices, `[k]` int64; the
             same energies, from sliced data), or None. A solver may then drop the entries that
             have converged instead of computing on them until the slowest one has.
-        compiled: evaluate through `torch.compile`d functions (`energysim.compiled`) where every
+        compiled: evaluate through `torch.compile`d functions (`energysim.objective.compiled`) where every
             term has the closed forms they call; solvers set it from their `compile` option.
     """
 
@@ -212,7 +212,7 @@ class Objective:
         return compiled_functions.dense_hessian(self.terms, self.action, self.free, x)
 
     def band_hessian(self, x: Tensor, layout: LevelLayout) -> Tensor | None:
-        """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.banded`) by the compiled
+        """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.linalg.banded`) by the compiled
         function, fixed DOFs eliminated; None as for `dense_hessian`."""
         if not self._compiles(hessian=True):
             return None
@@ -221,7 +221,7 @@ class Objective:
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False
     ) -> HessianOperator:
-        """∇²E(x) as an operator (see `energysim.derivatives.hessian_operator`)."""
+        """∇²E(x) as an operator (see `energysim.objective.derivatives.hessian_operator`)."""
         return hessian_operator(
             self.terms, x, self.action, self.free, use_element_blocks=use_element_blocks, project=project
         )

@@ -20,14 +20,14 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from energysim.banded import band_cholesky_solve, prefer_band
-from energysim.block_tridiagonal import level_solve, prefer_levels
-from energysim.derivatives import HessianOperator
 from energysim.energies.base import EnergyTerm
 from energysim.energies.inertia import Inertia
-from energysim.objective import Objective
-from energysim.optim.base import ConvergenceError, ConvergenceWarning, SolverResult
-from energysim.optim.newton_cg import block_jacobi_preconditioner
+from energysim.linalg.banded import band_cholesky_solve, prefer_band
+from energysim.linalg.block_tridiagonal import level_solve, prefer_levels
+from energysim.objective.derivatives import HessianOperator
+from energysim.objective.objective import Objective
+from energysim.solvers.base import ConvergenceError, ConvergenceWarning, SolverResult
+from energysim.solvers.newton_cg import block_jacobi_preconditioner
 
 
 class GradientError(RuntimeError):

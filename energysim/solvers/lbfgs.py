@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from energysim.objective import Objective
-from energysim.optim.arguments import require_integer
-from energysim.optim.base import LBFGS_STALL_ITERATIONS, Solver, SolverResult, Stagnation, line_step
+from energysim.objective.objective import Objective
+from energysim.solvers.arguments import require_integer
+from energysim.solvers.base import LBFGS_STALL_ITERATIONS, Solver, SolverResult, Stagnation, line_step
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:

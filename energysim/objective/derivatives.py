@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.assembly import SparsityPattern, assemble, cached_pattern
-from energysim.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks
+from energysim.linalg.assembly import SparsityPattern, assemble, cached_pattern
+from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
 
 EnergyFn = Callable[[Tensor], Tensor]
 
@@ -154,7 +154,7 @@ class HessianOperator:
 
     def level_blocks(self, like: Tensor) -> tuple[Tensor, Tensor, LevelLayout] | None:
         """The matrix in block-tridiagonal form over breadth-first vertex levels (see
-        `energysim.block_tridiagonal`): diagonal blocks `[B, L, S, S]`, sub-diagonal blocks
+        `energysim.linalg.block_tridiagonal`): diagonal blocks `[B, L, S, S]`, sub-diagonal blocks
         `[B, L−1, S, S]` and the layout, or None when some term has no assembled blocks."""
         matrix = self.matrix(like)
         if matrix is None or self.extra_products:
