@@ -13,6 +13,7 @@ from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereOb
 from energysim.creatures import CREATURES, Creature, load_creature
 from energysim.energies import (
     ActuatedSprings,
+    DensityEnergy,
     ElementEnergy,
     EnergyTerm,
     FibreMuscles,
@@ -67,6 +68,7 @@ __all__ = [
     "ConvergenceError",
     "ConvergenceWarning",
     "CREATURES",
+    "DensityEnergy",
     "Creature",
     "ElementEnergy",
     "FibreMuscles",

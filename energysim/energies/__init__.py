@@ -1,6 +1,7 @@
 """Energy terms: each a small, pure function of positions (and the action) returning joules."""
 
 from energysim.energies.base import ElementEnergy, EnergyTerm
+from energysim.energies.derived import DensityEnergy
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.energies.gravity import Gravity
 from energysim.energies.inertia import Inertia
@@ -11,6 +12,7 @@ from energysim.energies.viscosity import LaggedViscosity, Viscosity
 
 __all__ = [
     "ActuatedSprings",
+    "DensityEnergy",
     "ElementEnergy",
     "EnergyTerm",
     "FibreMuscles",
