@@ -9,9 +9,9 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.derivatives import autograd_element_hessian
 from energysim.energies.derived import density_stiffness, density_stress
 from energysim.fem.materials import cofactor_matrix, lame_parameters, stable_neo_hookean_density
+from energysim.objective.derivatives import autograd_element_hessian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

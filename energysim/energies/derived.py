@@ -13,7 +13,7 @@ the gather of corner positions and F = Ds Dm⁻¹, which makes the derived block
 cheaper than differentiating the whole element energy twice (`autograd_element_hessian`). The
 term then has the kernels solvers look for (`element_energy_and_gradient`, `element_hessian`), so
 it takes every fast path a built-in term takes: Newton–CG's assembled blocks, the direct solves,
-and `torch.compile` (`energysim.compiled`), where `torch.func` traces into the compiled graph.
+and `torch.compile` (`energysim.objective.compiled`), where `torch.func` traces into the compiled graph.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from torch.func import grad, jvp, vjp, vmap
 
 from energysim.energies.base import ElementEnergy
 from energysim.fem.kinematics import deformation_gradient, shape_gradients, simplex_rest_frame
+from energysim.linalg.small_matmul import small_matmul
 from energysim.mesh import SimplexMesh
-from energysim.small_matmul import small_matmul
 
 DensityFn = Callable[[Tensor], Tensor]
 
