@@ -151,6 +151,24 @@ def walk_spec(creature: str) -> Any:
     return importlib.import_module(f"walk_{creature}").SPEC
 
 
+def loglog_slope(x: Sequence[float], y: Sequence[float]) -> float:
+    """Least-squares slope of log y against log x (the exponent p of y ∝ x^p); NaN with fewer than
+    two usable points (non-finite or non-positive values are skipped)."""
+    points = [
+        (math.log(a), math.log(b))
+        for a, b in zip(x, y, strict=True)
+        if a > 0 and b > 0 and math.isfinite(a) and math.isfinite(b)
+    ]
+    if len(points) < 2:
+        return math.nan
+    mean_x = statistics.fmean(p[0] for p in points)
+    mean_y = statistics.fmean(p[1] for p in points)
+    spread = sum((p[0] - mean_x) ** 2 for p in points)
+    if spread == 0.0:
+        return math.nan
+    return sum((p[0] - mean_x) * (p[1] - mean_y) for p in points) / spread
+
+
 def finite(value: float) -> bool:
     """Whether `value` is neither NaN nor infinite."""
     return math.isfinite(value)
