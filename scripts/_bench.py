@@ -29,13 +29,15 @@ from energysim.cpu import configure as configure_cpu
 INTEGRATOR_ORDER = {"implicit_euler": 1, "tr_bdf2": 2, "leapfrog": 2}
 
 
-def make_parser(doc: str | None, name: str, *, threads: int | None = 1,
-    out: Path | None = None) -> argparse.ArgumentParser:
-    """The flags every benchmark takes: ``--out`` (default ``out/<name>``), ``--no-plot`` and, unless
-    `threads` is None, ``--threads`` (torch intra-op threads)."""
+def make_parser(
+    doc: str | None, name: str, *, threads: int | None = 1, out: Path | None = None, plot: bool = True
+) -> argparse.ArgumentParser:
+    """The flags every benchmark takes: ``--out`` (default ``out/<name>``), with `plot` ``--no-plot``,
+    and unless `threads` is None ``--threads`` (torch intra-op threads)."""
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=out or Path("out") / name, help="output folder")
-    parser.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    if plot:
+        parser.add_argument("--no-plot", action="store_true", help="skip the PNG")
     if threads is not None:
         parser.add_argument("--threads", type=int, default=threads, help="torch intra-op threads")
     return parser

@@ -159,7 +159,7 @@ def markdown(rows: list[dict], rollout_steps: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = make_parser(__doc__, "bench_grad", threads=None)
+    parser = make_parser(__doc__, "bench_grad", threads=None, plot=False)
     parser.add_argument("--sizes", nargs="+", default=["1k", "10k"], choices=list(SIZES))
     parser.add_argument("--steps", type=int, default=5, help="timed steps per mode")
     parser.add_argument("--rollout-steps", type=int, default=100)
