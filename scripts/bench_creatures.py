@@ -16,18 +16,14 @@ Writes: <out>/bench_creatures.csv, <out>/bench_creatures.md (the table) and <out
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import statistics
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from _common import save_figure, write_table_files
+from _bench import configure_threads, make_parser, pyplot, save_figure, table, timed, walk_spec, write_outputs
 from _locomotion import body_length, build_scene, default_gait, run
 
-from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES, load_creature
 
 REFERENCE_FACTOR = 10.0  # the reference run's tolerance is this many times tighter
@@ -57,20 +53,16 @@ class Row:
 def bench(name: str, seconds: float, tol: float | None, compile: bool = False) -> Row:
     """Walk `name` for `seconds` at `tol` (default: the script's) and at `tol` / 10; one table row.
     With `compile`, a first walk of `COMPILE_WARMUP` s compiles the objective's functions untimed."""
-    spec = importlib.import_module(f"walk_{name}").SPEC
+    spec = walk_spec(name)
     creature = load_creature(name)
     gait = default_gait(spec, creature)
     tol = spec.tol if tol is None else tol
     if compile:
-        start = time.perf_counter()
         warmup = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol, True)
-        run(warmup, gait, COMPILE_WARMUP, progress=False)
-        wall = time.perf_counter() - start
+        _, wall = timed(lambda: run(warmup, gait, COMPILE_WARMUP, progress=False))
         print(f"{name}: compiled in a {COMPILE_WARMUP:g} s warm-up walk of {wall:.1f} s wall")
     scene = build_scene(creature, spec.dt, spec.friction, "newton-cg", tol, compile)
-    start = time.perf_counter()
-    rollout = run(scene, gait, seconds, progress=False)
-    wall = time.perf_counter() - start
+    rollout, wall = timed(lambda: run(scene, gait, seconds, progress=False))
     reference = run(
         build_scene(creature, spec.dt, spec.friction, "newton-cg", tol / REFERENCE_FACTOR),
         gait,
@@ -110,27 +102,22 @@ def markdown(rows: list[Row], seconds: float, compile: bool = False) -> str:
         "that of a run at "
         f"{REFERENCE_FACTOR:g}× tighter tolerance|.",
         "",
-        "| creature | elements | h (s) | mean ms/step | median ms/step | real-time factor | iterations/step "
-        "| converged | distance (m) | body lengths | tol (m/s) | error (m) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in rows:
-        lines.append(
-            f"| {r.creature} | {r.elements} {r.kind} | {r.dt:.4g} | {r.ms_per_step:.1f} | "
-            f"{r.median_ms_per_step:.1f} | {r.realtime_factor:.2f} | {r.iterations:.1f} | {r.converged} | "
-            f"{r.distance_m:+.4f} | "
-            f"{r.body_lengths:+.3f} | {r.tol:.0e} | {r.error_m:.1e} |"
-        )
+    header = ["creature", "elements", "h (s)", "mean ms/step", "median ms/step", "real-time factor",
+              "iterations/step", "converged", "distance (m)", "body lengths", "tol (m/s)", "error (m)"]
+    lines += table(header, [
+        [r.creature, f"{r.elements} {r.kind}", f"{r.dt:.4g}", f"{r.ms_per_step:.1f}",
+            f"{r.median_ms_per_step:.1f}",
+         f"{r.realtime_factor:.2f}", f"{r.iterations:.1f}", r.converged, f"{r.distance_m:+.4f}",
+         f"{r.body_lengths:+.3f}", f"{r.tol:.0e}", f"{r.error_m:.1e}"]
+        for r in rows
+    ])
     return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[Row], path: Path) -> None:
     """Real-time factor per creature, and error against distance travelled."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axes = plt.subplots(1, 2, figsize=(10, 4))
     names = [r.creature for r in rows]
     axes[0].bar(names, [r.realtime_factor for r in rows], color="#8fb3d9")
@@ -148,24 +135,20 @@ def plot(rows: list[Row], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> list[Row]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_creatures")
     parser.add_argument("--creatures", nargs="+", default=list(CREATURES), choices=CREATURES)
     parser.add_argument("--seconds", type=float, default=5.0, help="simulated time per creature, s")
     parser.add_argument(
         "--tol", type=float, default=None, help="velocity residual, m/s; default the script's"
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--compile", action="store_true", help="compiled evaluations, compiled untimed")
-    parser.add_argument("--out", type=Path, default=Path("out/bench_creatures"))
-    parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
-    configure_cpu(args.threads)
+    configure_threads(args.threads)
     rows = [bench(name, args.seconds, args.tol, args.compile) for name in args.creatures]
-    table = markdown(rows, args.seconds, args.compile)
-    print(table)
-    write_table_files(args.out, "bench_creatures", rows, table)
-    if not args.no_plot:
-        plot(rows, args.out / "bench_creatures.png")
+    text = markdown(rows, args.seconds, args.compile)
+    print(text)
+    write_outputs(args.out, "bench_creatures", rows, text,
+        None if args.no_plot else lambda path: plot(rows, path))
     return rows
 
 

@@ -33,7 +33,6 @@ Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import dataclasses
 import io
@@ -45,9 +44,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import save_figure, write_table_files
+from _bench import configure_threads, make_parser, pyplot, quartiles, save_figure, table, write_outputs
 
-from energysim.cpu import configure as configure_cpu
 from energysim.creatures import CREATURES
 from energysim.envs import CreatureEnv, CreatureVectorEnv
 
@@ -78,14 +76,6 @@ class Row:
     gait_seconds: float = float("nan")
     gait_distance_reference: float = float("nan")
     gait_distance_error: float = float("nan")
-
-
-def quartiles(values: list[float]) -> tuple[float, float, float]:
-    """First quartile, median and third quartile (the values themselves when there are fewer than 2)."""
-    if len(values) < 2:
-        return values[0], values[0], values[0]
-    low, median, high = statistics.quantiles(values, n=4, method="inclusive")
-    return low, median, high
 
 
 def bench(
@@ -140,7 +130,8 @@ def bench(
         text = io.StringIO()
         pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
         print(f"--- profile: {creature}, B = {batch}, {steps} calls ---\n{text.getvalue()}")
-    low, median, high = quartiles(walls)
+    timing = quartiles(walls)
+    low, median, high = timing.low, timing.median, timing.high
     rate = batch / median
     print(f"{creature} B={batch}: {steps} calls, median {1e3 * median:.1f} ms = {rate:.1f} env steps/s")
     return Row(
@@ -240,28 +231,22 @@ def markdown(rows: list[Row], threads: int) -> str:
         f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
         "model four times finer in time, in float64 (the reference's distance beside it).",
         "",
-        f"| creature | B | calls | median ms/call (IQR) | env steps/s (IQR range) | {work} | failures "
-        "| gait distance, reference (m) | gait error (m) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in rows:
-        effort = f"{r.substeps}" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f}"
-        lines.append(
-            f"| {r.creature} | {r.batch} | {r.steps} | {r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f}) | "
-            f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–"
-            f"{r.env_steps_per_second_high:.1f}) | {effort} | {r.failures} | "
-            f"{r.gait_distance_reference:.4f} | {r.gait_distance_error:.1e} |"
-        )
+    header = ["creature", "B", "calls", "median ms/call (IQR)", "env steps/s (IQR range)", work, "failures",
+              "gait distance, reference (m)", "gait error (m)"]
+    lines += table(header, [
+        [r.creature, r.batch, r.steps, f"{r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f})",
+         f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–{r.env_steps_per_second_high:.1f})",
+         f"{r.substeps}" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f}", r.failures,
+         f"{r.gait_distance_reference:.4f}", f"{r.gait_distance_error:.1e}"]
+        for r in rows
+    ])
     return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[Row], path: Path) -> None:
     """Env steps per second against B, one line per creature, with the target."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axis = plt.subplots(figsize=(6, 4))
     for creature in dict.fromkeys(r.creature for r in rows):
         mine = [r for r in rows if r.creature == creature]
@@ -286,12 +271,11 @@ def plot(rows: list[Row], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> list[Row]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_env", out=Path("docs/benchmarks"))
     parser.add_argument("--creatures", nargs="+", default=["worm", "quadruped"], choices=CREATURES)
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[1, 16, 64], help="values of B")
     parser.add_argument("--steps", type=int, default=5, help="timed step calls per (creature, B)")
     parser.add_argument("--warmup", type=int, default=1, help="untimed step calls first")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     default_device = "cuda" if torch.cuda.is_available() else "cpu"
     parser.add_argument("--device", default=default_device, help=f"torch device (default {default_device})")
     parser.add_argument("--profile", action="store_true", help="print cProfile's top functions per run")
@@ -317,15 +301,13 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument(
         "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
     )
-    parser.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
-    parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
         parser.error("batch sizes, --steps and --threads must be >= 1 and --warmup >= 0")
     tau = args.activation_time_constant
     if tau is not None and not (np.isfinite(tau) and tau >= 0):
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
-    configure_cpu(args.threads)
+    configure_threads(args.threads)
     rows = [
         bench(
             creature,
@@ -359,11 +341,9 @@ def main(argv: list[str] | None = None) -> list[Row]:
             )
             for r in rows
         ]
-    table = markdown(rows, args.threads)
-    print(table)
-    write_table_files(args.out, "bench_env", rows, table)
-    if not args.no_plot:
-        plot(rows, args.out / "bench_env.png")
+    text = markdown(rows, args.threads)
+    print(text)
+    write_outputs(args.out, "bench_env", rows, text, None if args.no_plot else lambda path: plot(rows, path))
     return rows
 
 

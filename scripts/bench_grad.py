@@ -21,7 +21,6 @@ Writes <out>/bench_grad.csv and <out>/bench_grad.md.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import resource
 import statistics
@@ -36,6 +35,7 @@ import torch
 import energysim as es
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _bench import make_parser, table, write_outputs  # noqa: E402
 from bench_step import SIZES  # noqa: E402
 
 MODES = ("implicit", "unrolled", "implicit+checkpoint")
@@ -118,8 +118,48 @@ def peak_memory(size: str, mode: str, steps: int) -> dict[str, float]:
     return json.loads(output.strip().splitlines()[-1])
 
 
+def measure(size: str, mode: str, args: argparse.Namespace) -> dict[str, object]:
+    """One table row: `mode`'s step times at `size` and its memory over the rollout (projected from
+    at most `--unrolled-steps-max` steps when unrolled)."""
+    timing = time_steps(size, "unrolled" if mode == "unrolled" else "implicit", args.steps, 10)
+    steps = min(args.rollout_steps, args.unrolled_steps_max) if mode == "unrolled" else args.rollout_steps
+    memory = peak_memory(size, mode, steps)
+    scale = args.rollout_steps / steps
+    return {
+        "tets": build_scene(size)[0].mesh.num_elements,
+        "mode": mode,
+        **timing,
+        "rollout_steps": args.rollout_steps,
+        "measured_steps": steps,
+        "saved_mb": memory["saved_mb"] * scale,
+        "peak_rss_mb": memory["peak_mb"] * scale,
+        "projected": steps < args.rollout_steps,
+        "rollout_s": memory["seconds"],
+    }
+
+
+def markdown(rows: list[dict], rollout_steps: int) -> str:
+    """The results as a markdown table."""
+    lines = [
+        f"Cantilever (bench_step scene), h = 1/60 s, float64, {torch.get_num_threads()} threads; the loss "
+        f"reaches the state and Young's modulus. Memory over a {rollout_steps}-step rollout and its "
+        "backward: tensors saved for backward (exact) and peak RSS growth (coarse).",
+        "",
+    ]
+    header = ["tets", "mode", "forward ms/step", "backward ms/step", "backward / forward",
+              "saved for backward (MB)", "peak RSS growth (MB)", "measured steps"]
+    note = {True: " (projected)", False: ""}
+    lines += table(header, [
+        [r["tets"], r["mode"], f"{r['forward_ms']:.1f}", f"{r['backward_ms']:.1f}", f"{r['ratio']:.2f}",
+         f"{r['saved_mb']:.1f}{note[r['projected']]}", f"{r['peak_rss_mb']:.0f}{note[r['projected']]}",
+         r["measured_steps"]]
+        for r in rows
+    ], align="rlrrrrrr")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_grad", threads=None, plot=False)
     parser.add_argument("--sizes", nargs="+", default=["1k", "10k"], choices=list(SIZES))
     parser.add_argument("--steps", type=int, default=5, help="timed steps per mode")
     parser.add_argument("--rollout-steps", type=int, default=100)
@@ -130,7 +170,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="unrolled rollouts measure at most this many steps (then projected)",
     )
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
-    parser.add_argument("--out", type=Path, default=Path("out/bench_grad"))
     parser.add_argument("--memory-child", nargs=3, metavar=("SIZE", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.memory_child:
@@ -139,54 +178,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         return []
     rows = []
     for size in args.sizes:
-        tets = build_scene(size)[0].mesh.num_elements
         for mode in args.modes:
-            timing = time_steps(size, "unrolled" if mode == "unrolled" else "implicit", args.steps, 10)
-            steps = args.rollout_steps
-            if mode == "unrolled":
-                steps = min(steps, args.unrolled_steps_max)
-            memory = peak_memory(size, mode, steps)
-            projected = steps < args.rollout_steps
-            scale = args.rollout_steps / steps
-            row = {
-                "tets": tets,
-                "mode": mode,
-                **timing,
-                "rollout_steps": args.rollout_steps,
-                "measured_steps": steps,
-                "saved_mb": memory["saved_mb"] * scale,
-                "peak_rss_mb": memory["peak_mb"] * scale,
-                "projected": projected,
-                "rollout_s": memory["seconds"],
-            }
-            print(row)
-            rows.append(row)
-    lines = [
-        f"Cantilever (bench_step scene), h = 1/60 s, float64, {torch.get_num_threads()} threads; the loss "
-        f"reaches the state and Young's modulus. Memory over a {args.rollout_steps}-step rollout and its "
-        "backward: tensors saved for backward (exact) and peak RSS growth (coarse).",
-        "",
-        "| tets | mode | forward ms/step | backward ms/step | backward / forward | saved for backward (MB) "
-        "| peak RSS growth (MB) | measured steps |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        note = " (projected)" if r["projected"] else ""
-        lines.append(
-            f"| {r['tets']} | {r['mode']} | {r['forward_ms']:.1f} | {r['backward_ms']:.1f} | "
-            f"{r['ratio']:.2f} | {r['saved_mb']:.1f}{note} | {r['peak_rss_mb']:.0f}{note} | "
-            f"{r['measured_steps']} |"
-        )
-    table = "\n".join(lines) + "\n"
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "bench_grad.csv.tmp", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    (args.out / "bench_grad.csv.tmp").replace(args.out / "bench_grad.csv")
-    (args.out / "bench_grad.md.tmp").write_text(table)
-    (args.out / "bench_grad.md.tmp").replace(args.out / "bench_grad.md")
+            rows.append(measure(size, mode, args))
+            print(rows[-1])
+    text = markdown(rows, args.rollout_steps)
+    print(text)
+    write_outputs(args.out, "bench_grad", rows, text)
     return rows
 
 

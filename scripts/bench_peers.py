@@ -92,7 +92,16 @@ import energysim as es
 from energysim.fem.materials import lame_parameters, smith_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import INTEGRATOR_ORDER, save_figure, write_csv  # noqa: E402
+from _bench import (  # noqa: E402  # noqa: E402
+    INTEGRATOR_ORDER,
+    configure_threads,
+    make_parser,
+    pyplot,
+    save_figure,
+    table,
+    write_csv,
+    write_outputs,
+)
 from bench_step import SIZES, build_scene  # noqa: E402
 
 CHECKPOINT_S = 1.0 / 12.0  # every step size below divides it
@@ -682,19 +691,14 @@ def reference_text(args: argparse.Namespace) -> str:
     )
 
 
-def markdown(
-    runs: list[Run],
-    search: list[Run],
-    references: list[dict[str, float]],
-    args: argparse.Namespace,
-    load: tuple[tuple[float, float, float], tuple[float, float, float]],
-) -> str:
-    """The results as markdown tables."""
+def caption(args: argparse.Namespace, load: tuple[tuple[float, float, float], tuple[float, float,
+    float]]) -> str:
+    """What the tables measure, and on which machine and settings."""
     missing = peer_missing()
     peer = f"not installed ({missing})" if missing else peer_versions()
     seconds = args.checkpoints * CHECKPOINT_S
     integrators = " and ".join(args.integrators)
-    lines = [
+    return (
         f"Cantilever from rest for {seconds:g} s (`bench_step.build_scene`: E = 1e5 Pa, "
         f"ν = {args.poissons_ratio:g}, ρ = 1000 kg/m³), energysim (float64, Newton–CG; integrators "
         f"{integrators}) against Warp through `newton` ({peer}; float32, CPU). error = largest vertex "
@@ -729,9 +733,60 @@ def markdown(
         f"integrator alone. torch threads {args.threads}, OMP_WAIT_POLICY "
         f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}; Warp runs its CPU kernels on one thread. A shared "
         f"2-core machine: load average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end; treat "
-        "times as noisy.",
-        "",
-    ]
+        "times as noisy."
+    )
+
+
+def verdicts(runs: list[Run], tets: int, integrator: str) -> list[str]:
+    """energysim's best settings with `integrator` at `tets`: against any peer run, against VBD alone,
+    and at the error of the peer's largest stable step."""
+    peer = [r for r in runs if r.tets == tets and r.note == "largest stable step" and r.status == "ok"]
+    ours = [r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and r.integrator == integrator]
+    lines = ["", f"**{integrator}** ({tets} tets):"]
+    best = [r for r in ours if math.isfinite(r.ratio)]
+    if best:
+        winner = min(best, key=lambda r: r.ratio)
+        lines.append(
+            f"energysim's best setting by this measure: {winner.method} at h = {winner.dt:.3g} s, "
+            f"{winner.wall_s_per_sim_s:.3g} s per simulated second with error "
+            f"{winner.error_m:.2e} m, {winner.ratio:.3g}× the peer's time at equal or smaller error."
+        )
+    against_vbd = [r for r in ours if math.isfinite(r.ratio_vbd)]
+    if against_vbd:
+        winner = min(against_vbd, key=lambda r: r.ratio_vbd)
+        lines.append(
+            f"Against the peer's implicit integrator (VBD) alone, energysim's best is "
+            f"{winner.method} at h = {winner.dt:.3g} s: {winner.ratio_vbd:.3g}× the fastest VBD "
+            "run with no smaller error (< 1: energysim is faster)."
+        )
+    if peer:
+        matched = [r for r in ours if r.error_m <= peer[0].error_m]
+        if matched:
+            cheapest = min(matched, key=lambda r: r.wall_s_per_sim_s)
+            lines.append(
+                f"At the peer's error at its largest stable step ({peer[0].error_m:.2e} m, "
+                f"{peer[0].wall_s_per_sim_s:.3g} s per simulated second), energysim's cheapest "
+                f"run with no larger error is {cheapest.method} at h = {cheapest.dt:.3g} s: "
+                f"{cheapest.wall_s_per_sim_s:.3g} s per simulated second, "
+                f"{cheapest.wall_s_per_sim_s / peer[0].wall_s_per_sim_s:.3g}× the peer's."
+            )
+        else:
+            lines.append(
+                "No energysim run reached the peer's error at its largest stable step "
+                f"({peer[0].error_m:.2e} m)."
+            )
+    return lines
+
+
+def markdown(
+    runs: list[Run],
+    search: list[Run],
+    references: list[dict[str, float]],
+    args: argparse.Namespace,
+    load: tuple[tuple[float, float, float], tuple[float, float, float]],
+) -> str:
+    """The results as markdown tables."""
+    lines = [caption(args, load), ""]
     for ref in references:
         lines.append(
             f"- {ref['tets']} tets ({ref['dofs']} DOFs): the reference's error ≤ "
@@ -739,59 +794,18 @@ def markdown(
             f"Its runs are in the table too (tol {REFERENCE_TOL:g}): their errors are their distances "
             "from the extrapolation."
         )
-    lines += [
-        "",
-        "| tets | simulator | integrator | method | h (s) | wall s / simulated s | error (m) "
-        "| final error (m) | converged | ratio | ratio VBD | status | note |",
-        "|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
-    ]
-    for r in runs:
-        lines.append(
-            f"| {r.tets} | {r.simulator} | {r.integrator} | {r.method} | {r.dt:.3g} | "
-            f"{r.wall_s_per_sim_s:.3g} | {r.error_m:.2e} | {r.final_error_m:.2e} | {r.converged} | "
-            f"{r.ratio:.3g} | {r.ratio_vbd:.3g} | {r.status} | {r.note} |"
-        )
+    header = ["tets", "simulator", "integrator", "method", "h (s)", "wall s / simulated s", "error (m)",
+              "final error (m)", "converged", "ratio", "ratio VBD", "status", "note"]
+    lines += ["", *table(header, [
+        [r.tets, r.simulator, r.integrator, r.method, f"{r.dt:.3g}", f"{r.wall_s_per_sim_s:.3g}",
+         f"{r.error_m:.2e}", f"{r.final_error_m:.2e}", r.converged, f"{r.ratio:.3g}", f"{r.ratio_vbd:.3g}",
+         r.status, r.note]
+        for r in runs
+    ], align="rlll" + "r" * 7 + "ll")]
     for tets in dict.fromkeys(r.tets for r in runs):
-        peer = [r for r in runs if r.tets == tets and r.note == "largest stable step" and r.status == "ok"]
         orders = []
         for integrator in args.integrators:
-            ours = [
-                r for r in runs if r.tets == tets and r.simulator == ENERGYSIM and r.integrator == integrator
-            ]
-            lines += ["", f"**{integrator}** ({tets} tets):"]
-            best = [r for r in ours if math.isfinite(r.ratio)]
-            if best:
-                winner = min(best, key=lambda r: r.ratio)
-                lines.append(
-                    f"energysim's best setting by this measure: {winner.method} at h = {winner.dt:.3g} s, "
-                    f"{winner.wall_s_per_sim_s:.3g} s per simulated second with error "
-                    f"{winner.error_m:.2e} m, {winner.ratio:.3g}× the peer's time at equal or smaller "
-                    "error."
-                )
-            against_vbd = [r for r in ours if math.isfinite(r.ratio_vbd)]
-            if against_vbd:
-                winner = min(against_vbd, key=lambda r: r.ratio_vbd)
-                lines.append(
-                    f"Against the peer's implicit integrator (VBD) alone, energysim's best is "
-                    f"{winner.method} at h = {winner.dt:.3g} s: {winner.ratio_vbd:.3g}× the fastest VBD "
-                    "run with no smaller error (< 1: energysim is faster)."
-                )
-            if peer:
-                matched = [r for r in ours if r.error_m <= peer[0].error_m]
-                if matched:
-                    cheapest = min(matched, key=lambda r: r.wall_s_per_sim_s)
-                    lines.append(
-                        f"At the peer's error at its largest stable step ({peer[0].error_m:.2e} m, "
-                        f"{peer[0].wall_s_per_sim_s:.3g} s per simulated second), energysim's cheapest "
-                        f"run with no larger error is {cheapest.method} at h = {cheapest.dt:.3g} s: "
-                        f"{cheapest.wall_s_per_sim_s:.3g} s per simulated second, "
-                        f"{cheapest.wall_s_per_sim_s / peer[0].wall_s_per_sim_s:.3g}× the peer's."
-                    )
-                else:
-                    lines.append(
-                        "No energysim run reached the peer's error at its largest stable step "
-                        f"({peer[0].error_m:.2e} m)."
-                    )
+            lines += verdicts(runs, tets, integrator)
             order = observed_order(runs, tets, integrator)
             if math.isfinite(order):
                 orders.append(f"{integrator} {order:.2f} (expected {INTEGRATOR_ORDER[integrator]})")
@@ -808,23 +822,16 @@ def markdown(
             f"{args.search_start} until a run blows up or its error exceeds {args.accuracy_limit:g} m, "
             "then bisect, in this order:",
             "",
-            "| tets | steps per 1/12 s | h (s) | error (m) | status |",
-            "|---:|---:|---:|---:|---|",
+            *table(["tets", "steps per 1/12 s", "h (s)", "error (m)", "status"], [
+                [r.tets, r.steps_per_checkpoint, f"{r.dt:.3g}", f"{r.error_m:.2e}", r.status] for r in search
+            ], align="rrrrl"),
         ]
-        for r in search:
-            lines.append(
-                f"| {r.tets} | {r.steps_per_checkpoint} | {r.dt:.3g} | {r.error_m:.2e} | {r.status} |"
-            )
     return "\n".join(lines) + "\n"
 
 
 def plot(runs: list[Run], path: Path) -> None:
     """Error against wall time per simulated second, one line per simulator, integrator and method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, ax = plt.subplots(figsize=(7, 5))
     for key in dict.fromkeys((r.tets, r.simulator, r.integrator, r.method) for r in runs):
         mine = [
@@ -887,7 +894,7 @@ def poissons_ratio(text: str) -> float:
 
 def main(argv: list[str] | None = None) -> list[Run]:
     """Run the benchmark; write CSV, markdown and plot to `--out`; return every run."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_peers", threads=2)
     parser.add_argument("--sizes", nargs="+", default=["1k"], choices=list(SIZES))
     parser.add_argument("--checkpoints", type=int, default=12, help="simulated time in units of 1/12 s")
     parser.add_argument(
@@ -981,9 +988,6 @@ def main(argv: list[str] | None = None) -> list[Run]:
         default=1,
         help="timed runs of each energysim setting (the reference's runs: one)",
     )
-    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
-    parser.add_argument("--out", type=Path, default=Path("out/bench_peers"))
-    parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     for name in ("repeats", "energysim_repeats"):
         if getattr(args, name) < 1:
@@ -992,7 +996,7 @@ def main(argv: list[str] | None = None) -> list[Run]:
         parser.error("--reuse-factorization needs --compile and a value in (0, 1)")
     if args.reference_steps is None:
         args.reference_steps = DEFAULT_REFERENCE_STEPS[args.reference_integrator]
-    torch.set_num_threads(args.threads)
+    configure_threads(args.threads, retain_memory=False)
     load_start = os.getloadavg()
     runs, search, references = [], [], []
     for size in args.sizes:
@@ -1000,16 +1004,12 @@ def main(argv: list[str] | None = None) -> list[Run]:
         runs += size_runs
         search += size_search
         references.append(info)
-    table = markdown(runs, search, references, args, (load_start, os.getloadavg()))
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "bench_peers.csv", [asdict(r) for r in runs])
+    text = markdown(runs, search, references, args, (load_start, os.getloadavg()))
+    print(text)
+    write_outputs(args.out, "bench_peers", runs, text, None if args.no_plot else lambda path: plot(runs,
+        path))
     if search:
-        write_csv(args.out / "bench_peers_search.csv", [asdict(r) for r in search])
-    (args.out / "bench_peers.md.tmp").write_text(table)
-    (args.out / "bench_peers.md.tmp").replace(args.out / "bench_peers.md")
-    if not args.no_plot:
-        plot(runs, args.out / "bench_peers.png")
+        write_csv(args.out / "bench_peers_search.csv", search)
     check(runs)
     return runs
 

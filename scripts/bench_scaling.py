@@ -40,7 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -48,8 +48,8 @@ import torch
 import energysim as es
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import save_figure, write_csv  # noqa: E402
-from bench_step import REFERENCE_TOL, build_scene, timed_steps  # noqa: E402
+from _bench import loglog_slope, make_parser, pyplot, save_figure, table, write_csv, write_outputs  # noqa: E402
+from bench_step import REFERENCE_TOL, build_scene, effort, timed_steps  # noqa: E402
 from bench_step import SIZES as STEP_SIZES  # noqa: E402
 
 # cells along (x, y, z), 6 tets per cell: bench_step's meshes and the ones between them
@@ -86,24 +86,6 @@ class Row:
     scene_mb: float  # resident-set growth after building the scene, over the idle baseline
     peak_mb: float  # peak resident-set growth over the idle baseline
     status: str  # "ok", "budget" (fewer steps than asked), or the failure
-
-
-def loglog_slope(x: list[float], y: list[float]) -> float:
-    """Least-squares slope of log y against log x (the exponent p of y ∝ x^p); NaN with fewer than
-    two usable points (non-finite or non-positive values are skipped)."""
-    points = [
-        (math.log(a), math.log(b))
-        for a, b in zip(x, y, strict=True)
-        if a > 0 and b > 0 and math.isfinite(a) and math.isfinite(b)
-    ]
-    if len(points) < 2:
-        return math.nan
-    mean_x = statistics.fmean(p[0] for p in points)
-    mean_y = statistics.fmean(p[1] for p in points)
-    spread = sum((p[0] - mean_x) ** 2 for p in points)
-    if spread == 0.0:
-        return math.nan
-    return sum((p[0] - mean_x) * (p[1] - mean_y) for p in points) / spread
 
 
 def make_solver(name: str, lbfgs_max_iter: int) -> es.Solver:
@@ -161,11 +143,7 @@ def worker_measure(
         "steps": len(times),
         "ms_per_step": 1e3 * statistics.median(times),
         "cpu_ms_per_step": 1e3 * cpu_seconds / len(times),
-        "iterations": statistics.fmean(s.iterations for s in stats),
-        "grad_evals": statistics.fmean(s.grad_evals for s in stats),
-        "hvps": statistics.fmean(s.hvp_evals for s in stats),
-        "residual": max(s.residual for s in stats),
-        "converged": f"{sum(s.converged for s in stats)}/{len(stats)}",
+        **effort(stats),
         "error_m": max(errors),
         "scene_rss_mb": scene_rss,
         "peak_rss_mb": resident_mb(),
@@ -366,31 +344,30 @@ def markdown(
         "hardly change it, so with 1 thread it is the best estimate of the wall time on an idle core, "
         "and its slope the most trustworthy.",
         "",
-        "| tets | optimizer | threads | median ms/step | CPU ms/step | iterations | grad evals | HVPs "
-        "| max residual (m/s) | converged | max error (m) | scene MB | peak MB | status |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
-    for r in rows:
-        lines.append(
-            f"| {r.tets} | {r.solver} | {r.threads} | {r.ms_per_step:.1f} | {r.cpu_ms_per_step:.1f} | "
-            f"{r.iterations:.1f} | "
-            f"{r.grad_evals:.1f} | {r.hvps:.1f} | {r.residual:.1e} | {r.converged} | {r.error_m:.1e} | "
-            f"{r.scene_mb:.0f} | {r.peak_mb:.0f} | {r.status} |"
-        )
+    header = ["tets", "optimizer", "threads", "median ms/step", "CPU ms/step", "iterations", "grad evals",
+              "HVPs", "max residual (m/s)", "converged", "max error (m)", "scene MB", "peak MB", "status"]
+    lines += table(header, [
+        [r.tets, r.solver, r.threads, f"{r.ms_per_step:.1f}", f"{r.cpu_ms_per_step:.1f}",
+            f"{r.iterations:.1f}",
+         f"{r.grad_evals:.1f}", f"{r.hvps:.1f}", f"{r.residual:.1e}", r.converged, f"{r.error_m:.1e}",
+         f"{r.scene_mb:.0f}", f"{r.peak_mb:.0f}", r.status]
+        for r in rows
+    ], align="rl" + "r" * 11 + "l")
     lines += [
         "",
         f"Log–log slopes (least squares over the sizes with ≥ {args.fit_min_tets} tets): time ∝ tets^p. "
         f"The project aims at p ≤ {GOAL_SLOPE} and under {GOAL_SECONDS_AT_100K:g} s per Newton–CG step at "
         "100k tets on 2 cores.",
         "",
-        "| optimizer | threads | sizes fitted | wall-time slope | CPU-time slope | peak-memory slope |",
-        "|---|---:|---:|---:|---:|---:|",
     ]
-    for f in fits:
-        lines.append(
-            f"| {f['solver']} | {f['threads']} | {f['sizes']} | {f['time_slope']:.2f} | "
-            f"{f['cpu_time_slope']:.2f} | {f['memory_slope']:.2f} |"
-        )
+    header = ["optimizer", "threads", "sizes fitted", "wall-time slope", "CPU-time slope",
+        "peak-memory slope"]
+    lines += table(header, [
+        [f["solver"], f["threads"], f["sizes"], f"{f['time_slope']:.2f}", f"{f['cpu_time_slope']:.2f}",
+         f"{f['memory_slope']:.2f}"]
+        for f in fits
+    ])
     newton = [r for r in rows if r.solver == "newton-cg" and r.tets >= 100_000 and r.threads == 2]
     for r in newton:
         verdict = "meets" if r.ms_per_step < 1e3 * GOAL_SECONDS_AT_100K else "misses"
@@ -406,14 +383,12 @@ def markdown(
             f"thread{'s' * (args.threads[0] != 1)}, cProfile, {profile['wall_ms']:.0f} ms under the "
             f"profiler; {profile['summary']}). Self = time inside the function itself.",
             "",
-            "| function | calls | self ms | self % | cumulative ms |",
-            "|---|---:|---:|---:|---:|",
         ]
-        for item in profile["items"]:
-            lines.append(
-                f"| `{item['function']}` | {item['calls']} | {item['self_ms']:.0f} | "
-                f"{item['self_pct']:.1f} | {item['cumulative_ms']:.0f} |"
-            )
+        lines += table(["function", "calls", "self ms", "self %", "cumulative ms"], [
+            [f"`{i['function']}`", i["calls"], f"{i['self_ms']:.0f}", f"{i['self_pct']:.1f}",
+             f"{i['cumulative_ms']:.0f}"]
+            for i in profile["items"]
+        ])
     elif profile is not None:
         lines += ["", f"The profile run failed: {profile['error']}"]
     return "\n".join(lines) + "\n"
@@ -421,11 +396,7 @@ def markdown(
 
 def plot(rows: list[Row], path: Path) -> None:
     """Time, peak memory and error against tets, log–log, one line per optimizer and thread count."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axes = plt.subplots(1, 3, figsize=(15, 4))
     for name, threads in dict.fromkeys((r.solver, r.threads) for r in rows):
         mine = [r for r in rows if r.solver == name and r.threads == threads and math.isfinite(r.ms_per_step)]
@@ -469,7 +440,7 @@ def check(rows: list[Row]) -> None:
 
 
 def main(argv: list[str] | None = None) -> list[Row]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_scaling", threads=None)
     parser.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, choices=list(SIZES))
     parser.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
     parser.add_argument("--threads", nargs="+", type=int, default=[2], help="torch intra-op threads, each")
@@ -496,8 +467,6 @@ def main(argv: list[str] | None = None) -> list[Row]:
     )
     parser.add_argument("--profile", action="store_true", help="profile a Newton–CG step at the largest size")
     parser.add_argument("--profile-top", type=int, default=12, help="functions listed in the profile")
-    parser.add_argument("--out", type=Path, default=Path("out/bench_scaling"))
-    parser.add_argument("--no-plot", action="store_true")
     # the child processes' side (internal)
     parser.add_argument(
         "--worker", choices=["baseline", "reference", "measure", "profile"], help=argparse.SUPPRESS
@@ -511,18 +480,13 @@ def main(argv: list[str] | None = None) -> list[Row]:
     with tempfile.TemporaryDirectory(prefix="bench_scaling_") as folder:
         rows, profile, baseline_mb = run(args, Path(folder))
     fits = slopes(rows, args.fit_min_tets)
-    table = markdown(rows, fits, profile, baseline_mb, args, (load_start, os.getloadavg()))
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "bench_scaling.csv", [asdict(r) for r in rows])
-    (args.out / "bench_scaling.md.tmp").write_text(table)
-    (args.out / "bench_scaling.md.tmp").replace(args.out / "bench_scaling.md")
+    text = markdown(rows, fits, profile, baseline_mb, args, (load_start, os.getloadavg()))
+    print(text)
+    write_outputs(args.out, "bench_scaling", rows, text,
+        None if args.no_plot else lambda path: plot(rows, path))
     if profile is not None and "error" not in profile:
-        write_csv(
-            args.out / "bench_scaling_profile.csv", [{"tets": profile["tets"], **i} for i in profile["items"]]
-        )
-    if not args.no_plot:
-        plot(rows, args.out / "bench_scaling.png")
+        profiled = [{"tets": profile["tets"], **i} for i in profile["items"]]
+        write_csv(args.out / "bench_scaling_profile.csv", profiled)
     check(rows)
     return rows
 

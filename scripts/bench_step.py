@@ -31,12 +31,22 @@ import statistics
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
 import torch
-from _common import save_figure, write_csv
+from _bench import (
+    configure_threads,
+    fixed,
+    make_parser,
+    median_ms,
+    pyplot,
+    save_figure,
+    table,
+    write_csv,
+    write_outputs,
+)
 
 import energysim as es
 from energysim.contact import LaggedFriction
@@ -112,15 +122,15 @@ class Row:
     error_m: float
 
 
-def median_ms(function: Callable[[], object], repeats: int = 7) -> float:
-    """Median wall time of `function` in ms, after one warm-up call."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+def effort(stats: list[es.SolverResult]) -> dict[str, object]:
+    """What the solver's reports of the timed steps add up to: the columns `Row` and `LandingRow` share."""
+    return {
+        "iterations": statistics.mean(s.iterations for s in stats),
+        "grad_evals": statistics.mean(s.grad_evals for s in stats),
+        "hvps": statistics.mean(s.hvp_evals for s in stats),
+        "residual": max(s.residual for s in stats),
+        "converged": f"{sum(s.converged for s in stats)}/{len(stats)}",
+    }
 
 
 def kernel_timings(scene: es.Scene, state: torch.Tensor) -> dict[str, float]:
@@ -163,19 +173,13 @@ def run(
         if name not in names:
             continue
         times, stats, errors, _ = timed_steps(scene, states, steps, solver, budget_s)
-        count = len(times)
-        converged = sum(s.converged for s in stats)
         rows.append(
             Row(
                 tets=scene.mesh.num_elements,
                 solver=name,
-                steps=count,
+                steps=len(times),
                 ms_per_step=1e3 * statistics.median(times),
-                iterations=statistics.mean(s.iterations for s in stats),
-                grad_evals=statistics.mean(s.grad_evals for s in stats),
-                hvps=statistics.mean(s.hvp_evals for s in stats),
-                residual=max(s.residual for s in stats),
-                converged=f"{converged}/{count}",
+                **effort(stats),
                 error_m=max(errors),
             )
         )
@@ -188,29 +192,25 @@ def markdown(rows: list[Row], kernels: dict[int, dict[str, float]], tol: float) 
         f"Cantilever step, h = 1/60 s, float64, {torch.get_num_threads()} threads; tol = {tol:g} m/s "
         f"(velocity residual); error = max |x_(n+1) − x_ref| against Newton–CG at {REFERENCE_TOL:g} m/s.",
         "",
-        "| tets | optimizer | median ms/step | iterations | grad evals | HVPs | max residual (m/s) "
-        "| converged | max error (m) |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in rows:
-        lines.append(
-            f"| {r.tets} | {r.solver} | {r.ms_per_step:.1f} | {r.iterations:.1f} | {r.grad_evals:.1f} | "
-            f"{r.hvps:.1f} | {r.residual:.1e} | {r.converged} | {r.error_m:.1e} |"
-        )
-    lines += ["", "| tets | " + " | ".join(f"{k} (ms)" for k in next(iter(kernels.values()))) + " |"]
-    lines.append("|---:|" + "---:|" * len(next(iter(kernels.values()))))
-    for tets, timing in kernels.items():
-        lines.append(f"| {tets} | " + " | ".join(f"{v:.2f}" for v in timing.values()) + " |")
+    header = ["tets", "optimizer", "median ms/step", "iterations", "grad evals", "HVPs", "max residual (m/s)",
+              "converged", "max error (m)"]
+    lines += table(header, [
+        [r.tets, r.solver, f"{r.ms_per_step:.1f}", f"{r.iterations:.1f}", f"{r.grad_evals:.1f}",
+            f"{r.hvps:.1f}",
+         f"{r.residual:.1e}", r.converged, f"{r.error_m:.1e}"]
+        for r in rows
+    ], align="rl" + "r" * 7)
+    kernel_names = [f"{k} (ms)" for k in next(iter(kernels.values()))]
+    lines += ["", *table(["tets", *kernel_names], [
+        [tets, *(f"{v:.2f}" for v in timing.values())] for tets, timing in kernels.items()
+    ], align="r" * (1 + len(kernel_names)))]
     return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[Row], path: Path) -> None:
     """ms per step against tet count, one line per optimizer, log–log."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axes = plt.subplots(1, 2, figsize=(10, 4))
     for name in dict.fromkeys(r.solver for r in rows):
         mine = [r for r in rows if r.solver == name]
@@ -487,19 +487,14 @@ def run_landing(
             scene, states, steps, solver, budget_s, probe=lambda x: float(ground.signed_distance(x).min())
         )
         iterations[name] = [s.iterations for s in stats]
-        count = len(times)
         rows.append(
             LandingRow(
                 tets=scene.mesh.num_elements,
                 solver=name,
-                steps=count,
+                steps=len(times),
                 ms_per_step=1e3 * statistics.median(times),
-                iterations=statistics.mean(s.iterations for s in stats),
-                max_iterations=max(s.iterations for s in stats),
-                grad_evals=statistics.mean(s.grad_evals for s in stats),
-                hvps=statistics.mean(s.hvp_evals for s in stats),
-                residual=max(s.residual for s in stats),
-                converged=f"{sum(s.converged for s in stats)}/{count}",
+                max_iterations=max(iterations[name]),
+                **effort(stats),
                 min_height_m=min(heights),
                 error_m=max(errors),
             )
@@ -550,35 +545,28 @@ def landing_markdown(
         "height above the ground (> 0: no penetration). Wall times are medians, on a shared machine "
         "(noisy).",
         "",
-        "| tets | optimizer | median ms/step | iterations | max iterations | grad evals | HVPs "
-        "| max residual (m/s) | converged | lowest vertex (m) | max error (m) |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in rows:
-        lines.append(
-            f"| {r.tets} | {r.solver} | {r.ms_per_step:.1f} | {r.iterations:.1f} | {r.max_iterations} | "
-            f"{r.grad_evals:.1f} | {r.hvps:.1f} | {r.residual:.1e} | {r.converged} | {r.min_height_m:.2e} | "
-            f"{r.error_m:.1e} |"
-        )
-    solver_columns = [
-        key for key in trace[0] if key.endswith("_iterations") and key != "reference_iterations"
-    ]
+    header = ["tets", "optimizer", "median ms/step", "iterations", "max iterations", "grad evals", "HVPs",
+              "max residual (m/s)", "converged", "lowest vertex (m)", "max error (m)"]
+    lines += table(header, [
+        [r.tets, r.solver, f"{r.ms_per_step:.1f}", f"{r.iterations:.1f}", r.max_iterations,
+            f"{r.grad_evals:.1f}",
+         f"{r.hvps:.1f}", f"{r.residual:.1e}", r.converged, f"{r.min_height_m:.2e}", f"{r.error_m:.1e}"]
+        for r in rows
+    ], align="rl" + "r" * 9)
+    solver_columns = [k for k in trace[0] if k.endswith("_iterations") and k != "reference_iterations"]
     lines += [
         "",
         "Iterations per timed step (the reference's states; vertices in contact: within d̂ of the ground).",
         "",
-        "| tets | step | t (s) | lowest vertex (m) | vertices in contact | reference iterations | "
-        + " | ".join(key.removesuffix("_iterations") + " iterations" for key in solver_columns)
-        + " |",
-        "|---:|---:|---:|---:|---:|---:|" + "---:|" * len(solver_columns),
     ]
-    for t in trace:
-        lines.append(
-            f"| {t['tets']} | {t['step']} | {t['time_s']:.3f} | {t['min_height_m']:.2e} | "
-            f"{t['vertices_in_contact']} | {t['reference_iterations']} | "
-            + " | ".join(str(t[key]) for key in solver_columns)
-            + " |"
-        )
+    header = ["tets", "step", "t (s)", "lowest vertex (m)", "vertices in contact", "reference iterations",
+              *(key.removesuffix("_iterations") + " iterations" for key in solver_columns)]
+    lines += table(header, [
+        [t["tets"], t["step"], f"{t['time_s']:.3f}", f"{t['min_height_m']:.2e}", t["vertices_in_contact"],
+         t["reference_iterations"], *(t[key] for key in solver_columns)]
+        for t in trace
+    ], align="r" * len(header))
     lines += [
         "",
         "Cost per evaluation of each term alone at a resting state in contact (friction lagged from the "
@@ -586,16 +574,14 @@ def landing_markdown(
         "Hessian; the last two lines are the whole step objective (inertia, gravity, elasticity, and the "
         "contact terms or not), Hessian column = element Hessians + CSR assembly.",
         "",
-        "| tets | term | energy+gradient (ms) | % of elastic | element Hessian blocks (ms) | % of elastic |",
-        "|---:|---|---:|---:|---:|---:|",
     ]
-    for c in costs:
-        hessian = "–" if math.isnan(c["hessian_ms"]) else f"{c['hessian_ms']:.3f}"
-        share = "–" if math.isnan(c["hessian_pct"]) else f"{c['hessian_pct']:.1f}"
-        lines.append(
-            f"| {c['tets']} | {c['term']} | {c['energy_gradient_ms']:.3f} | {c['energy_gradient_pct']:.1f} | "
-            f"{hessian} | {share} |"
-        )
+    header = ["tets", "term", "energy+gradient (ms)", "% of elastic", "element Hessian blocks (ms)",
+        "% of elastic"]
+    lines += table(header, [
+        [c["tets"], c["term"], f"{c['energy_gradient_ms']:.3f}", f"{c['energy_gradient_pct']:.1f}",
+         fixed(c["hessian_ms"], 3), fixed(c["hessian_pct"], 1)]
+        for c in costs
+    ], align="rlrrrr")
     lines += [
         "",
         f"The same Newton–CG steps (tol {args.tol:g} m/s, from every timed reference state, "
@@ -607,25 +593,22 @@ def landing_markdown(
         "per line search and per warm-start candidate, and lets the warm start also try x_n (iteration "
         "counts can differ slightly); friction is built only where a vertex is within d̂.",
         "",
-        "| tets | scene | step objective terms (at rest) | terms with CCD | CCD calls/step | steps timed "
-        "| median ms/step | Newton iterations | vs no obstacle |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for o in overhead:
-        lines.append(
-            f"| {o.tets} | {o.scene} | {o.terms} | {o.ccd_terms} | {o.ccd_calls_per_step:.1f} | "
-            f"{o.samples} | {o.ms_per_step:.1f} | {o.iterations:.2f} | {o.vs_no_obstacle_pct:+.0f}% |"
-        )
+    header = ["tets", "scene", "step objective terms (at rest)", "terms with CCD", "CCD calls/step",
+        "steps timed",
+              "median ms/step", "Newton iterations", "vs no obstacle"]
+    lines += table(header, [
+        [o.tets, o.scene, o.terms, o.ccd_terms, f"{o.ccd_calls_per_step:.1f}", o.samples,
+            f"{o.ms_per_step:.1f}",
+         f"{o.iterations:.2f}", f"{o.vs_no_obstacle_pct:+.0f}%"]
+        for o in overhead
+    ], align="rll" + "r" * 6)
     return "\n".join(lines) + "\n"
 
 
 def landing_plot(rows: list[LandingRow], trace: list[dict[str, object]], path: Path) -> None:
     """ms per step against tet count per optimizer; Newton iterations per timed step per mesh."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axes = plt.subplots(1, 2, figsize=(10, 4))
     for name in dict.fromkeys(r.solver for r in rows):
         mine = [r for r in rows if r.solver == name]
@@ -666,14 +649,9 @@ def cantilever_main(args: argparse.Namespace) -> list[Row]:
         kernels[size_rows[0].tets] = timing
         for row in size_rows:
             print(row)
-    table = markdown(rows, kernels, args.tol)
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "bench_step.csv", [asdict(r) for r in rows])
-    (args.out / "bench_step.md.tmp").write_text(table)
-    (args.out / "bench_step.md.tmp").replace(args.out / "bench_step.md")
-    if not args.no_plot:
-        plot(rows, args.out / "bench_step.png")
+    text = markdown(rows, kernels, args.tol)
+    print(text)
+    write_outputs(args.out, "bench_step", rows, text, None if args.no_plot else lambda path: plot(rows, path))
     return rows
 
 
@@ -698,22 +676,18 @@ def landing_main(args: argparse.Namespace) -> list[LandingRow]:
         overhead += size_overhead
         for row in size_rows + size_overhead:
             print(row)
-    table = landing_markdown(rows, trace, costs, overhead, args)
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "bench_step_landing.csv", [asdict(r) for r in rows])
+    text = landing_markdown(rows, trace, costs, overhead, args)
+    print(text)
+    plotter = None if args.no_plot else lambda path: landing_plot(rows, trace, path)
+    write_outputs(args.out, "bench_step_landing", rows, text, plotter)
     write_csv(args.out / "bench_step_landing_trace.csv", trace)
     write_csv(args.out / "bench_step_landing_terms.csv", costs)
-    write_csv(args.out / "bench_step_landing_obstacles.csv", [asdict(o) for o in overhead])
-    (args.out / "bench_step_landing.md.tmp").write_text(table)
-    (args.out / "bench_step_landing.md.tmp").replace(args.out / "bench_step_landing.md")
-    if not args.no_plot:
-        landing_plot(rows, trace, args.out / "bench_step_landing.png")
+    write_csv(args.out / "bench_step_landing_obstacles.csv", overhead)
     return rows
 
 
 def main(argv: list[str] | None = None) -> list[Row | LandingRow]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = make_parser(__doc__, "bench_step", threads=None)
     parser.add_argument(
         "--scenes",
         nargs="+",
@@ -736,14 +710,9 @@ def main(argv: list[str] | None = None) -> list[Row | LandingRow]:
     parser.add_argument(
         "--landing-repeats", type=int, default=3, help="repeats per state of the with/without-obstacle steps"
     )
-    parser.add_argument(
-        "--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)"
-    )
-    parser.add_argument("--out", type=Path, default=Path("out/bench_step"))
-    parser.add_argument("--no-plot", action="store_true")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     args = parser.parse_args(argv)
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
+    configure_threads(args.threads, retain_memory=False)
     rows: list[Row | LandingRow] = []
     if "cantilever" in args.scenes:
         rows += cantilever_main(args)

@@ -58,7 +58,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from fractions import Fraction
 from functools import lru_cache
 from pathlib import Path
@@ -67,8 +67,20 @@ import _locomotion
 import bench_step
 import cantilever
 import torch
-import walk_quadruped
-from _common import INTEGRATOR_ORDER, save_figure, simulate
+from _bench import (
+    INTEGRATOR_ORDER,
+    configure_threads,
+    finite,
+    loglog_slope,
+    pyplot,
+    save_figure,
+    step_through,
+    walk_spec,
+    write_csv,
+)
+from _bench import fixed as _f
+from _bench import sci as _e
+from _bench import write_outputs as write_files
 from torch import Tensor
 from tqdm import tqdm
 
@@ -118,14 +130,15 @@ def build_drop(size: str) -> Setup:
 
 @lru_cache(maxsize=1)
 def _quadruped() -> Creature:
-    return load_creature(walk_quadruped.SPEC.creature)
+    return load_creature(walk_spec("quadruped").creature)
 
 
 def build_quadruped(size: str) -> Setup:
     """The shipped quadruped at rest on the ground, driven by its default gait (one size only)."""
     creature = _quadruped()
-    scene = _locomotion.build_scene(creature, friction=walk_quadruped.SPEC.friction)
-    gait = _locomotion.default_gait(walk_quadruped.SPEC, creature)
+    spec = walk_spec("quadruped")
+    scene = _locomotion.build_scene(creature, friction=spec.friction)
+    gait = _locomotion.default_gait(spec, creature)
     return Setup(scene, _locomotion.initial_state(scene), gait.action)
 
 
@@ -194,10 +207,9 @@ class BudgetedSolver:
         self.boundaries: list[int] = []  # len(results) after each observed state, the initial one first
         self.started = time.process_time()
 
-    def observe(self, x: Tensor, v: Tensor) -> dict[str, Tensor]:
-        """Mark the end of a step (the first call: the initial state); records nothing."""
+    def observe(self) -> None:
+        """Mark the end of a step (the first call: the initial state)."""
         self.boundaries.append(len(self.results))
-        return {}
 
     def step_reports(self) -> list[list[es.SolverResult]]:
         """The solves of each completed step (a stopped step's partial solves are left out)."""
@@ -350,14 +362,8 @@ def simulate_run(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", es.ConvergenceWarning)  # counted from the reports instead
-            rollout = simulate(
-                scene,
-                setup.state,
-                float(seconds),
-                budgeted.observe,
-                frames_every=every,
-                progress=False,
-                action=setup.action,
+            rollout = step_through(
+                scene, setup.state, steps, every=every, action=setup.action, after_step=budgeted.observe
             )
         samples = rollout.positions[rollout.frame_steps % every == 0]
         if not torch.isfinite(samples).all():
@@ -412,8 +418,9 @@ def skipped(
     name: str, setup: Setup, optimizer: str, integrator: str, dt: Fraction, tol: float, seconds: Fraction
 ) -> Run:
     """The report of a run not taken, because a looser tolerance of it was `hopeless`."""
-    nan = math.nan
+    measured = {f.name: math.nan for f in fields(Run) if f.type == "float"}
     return Run(
+        **measured,
         scene=name,
         role="sweep",
         optimizer=optimizer,
@@ -425,17 +432,6 @@ def skipped(
         steps=int(seconds / dt),
         steps_done=0,
         unconverged_steps=0,
-        iterations_per_step=nan,
-        solves_per_step=nan,
-        max_residual=nan,
-        wall_s=nan,
-        wall_per_sim_s=nan,
-        cpu_s=nan,
-        cpu_per_sim_s=nan,
-        error=nan,
-        final_error=nan,
-        solver_error=nan,
-        solver_final_error=nan,
         body_size_m=body_size(setup.scene),
         elements=setup.scene.mesh.num_elements,
     )
@@ -529,19 +525,9 @@ def run_scene(name: str, seconds: Fraction, args: argparse.Namespace, progress: 
 # --- analysis ---------------------------------------------------------------------------------------
 
 
-def finite(value: float) -> bool:
-    return value == value and not math.isinf(value)
-
-
 def observed_order(runs: list[Run]) -> float:
     """Least-squares slope of log(error) against log(h) over `runs` with a positive finite error."""
-    points = [(math.log(r.dt_s), math.log(r.error)) for r in runs if finite(r.error) and r.error > 0]
-    if len(points) < 2:
-        return math.nan
-    mean_x = sum(p[0] for p in points) / len(points)
-    mean_y = sum(p[1] for p in points) / len(points)
-    spread = sum((p[0] - mean_x) ** 2 for p in points)
-    return sum((p[0] - mean_x) * (p[1] - mean_y) for p in points) / spread
+    return loglog_slope([r.dt_s for r in runs], [r.error for r in runs])
 
 
 def time_series(rows: list[Run], scene: str, integrator: str = "implicit_euler") -> list[Run]:
@@ -642,14 +628,6 @@ def headline(
 # --- output -----------------------------------------------------------------------------------------
 
 
-def _e(value: float, digits: int = 1) -> str:
-    return f"{value:.{digits}e}" if finite(value) else "–"
-
-
-def _f(value: float, digits: int = 1) -> str:
-    return f"{value:.{digits}f}" if finite(value) else "–"
-
-
 def _cost(r: Run) -> str:
     """Wall and CPU seconds per simulated second, as two table cells."""
     if not finite(r.wall_per_sim_s):
@@ -658,11 +636,14 @@ def _cost(r: Run) -> str:
     return f"{mark}{r.wall_per_sim_s:.3g} | {mark}{r.cpu_per_sim_s:.3g}"
 
 
-def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fraction]) -> str:
-    """The results as markdown tables."""
+def scenes_in(rows: list[Run]) -> list[str]:
+    """The scenes of `rows`, in the order they ran."""
+    return list(dict.fromkeys(r.scene for r in rows))
+
+
+def introduction(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fraction]) -> list[str]:
+    """What was measured and how, and the scenes."""
     scenes = list(dict.fromkeys(r.scene for r in rows))
-    pairs = sweep_pairs(rows)
-    integrators = integrators_in(rows)
     reference = next(r for r in rows if r.role == "reference")
     threads = torch.get_num_threads()
     lines = [
@@ -691,35 +672,47 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
             f"| {scene} | {SCENE_NOTES[scene]} | {first.elements} | {first.body_size_m:.3f} | "
             f"{float(seconds[scene]):.4g} |"
         )
-    for accuracy in ACCURACIES:
-        lines += [
-            "",
-            f"## Fastest setting with error ≤ {accuracy:g} of the body size",
-            "",
-            "| scene | optimizer | integrator | h (s) | tol (m/s) | wall s per simulated s "
-            "| CPU s per simulated s | error | final error | status |",
-            "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
-        ]
-        for scene in scenes:
-            for optimizer, integrator in pairs:
-                best = headline(rows, scene, optimizer, accuracy, integrator=integrator)
-                if best is None:
-                    series = time_series(rows, scene, integrator)
-                    floor = (
-                        f"time-discretisation error at h = {series[-1].dt} s: {_e(series[-1].error)}"
-                        if series
-                        else "no tight run"
-                    )
-                    lines.append(
-                        f"| {scene} | {optimizer} | {integrator} | – | – | none reached it ({floor}) "
-                        "| – | – | – | – |"
-                    )
-                else:
-                    lines.append(
-                        f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | "
-                        f"{_cost(best)} | {_e(best.error)} | {_e(best.final_error)} | {best.status} |"
-                    )
+    return lines
+
+
+def fastest(rows: list[Run], accuracy: float) -> list[str]:
+    """The fastest sweep run of each optimizer and integrator with error ≤ `accuracy` of the body size."""
+    scenes, pairs = scenes_in(rows), sweep_pairs(rows)
+    lines: list[str] = []
     lines += [
+        "",
+        f"## Fastest setting with error ≤ {accuracy:g} of the body size",
+        "",
+        "| scene | optimizer | integrator | h (s) | tol (m/s) | wall s per simulated s "
+        "| CPU s per simulated s | error | final error | status |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for scene in scenes:
+        for optimizer, integrator in pairs:
+            best = headline(rows, scene, optimizer, accuracy, integrator=integrator)
+            if best is None:
+                series = time_series(rows, scene, integrator)
+                floor = (
+                    f"time-discretisation error at h = {series[-1].dt} s: {_e(series[-1].error)}"
+                    if series
+                    else "no tight run"
+                )
+                lines.append(
+                    f"| {scene} | {optimizer} | {integrator} | – | – | none reached it ({floor}) "
+                    "| – | – | – | – |"
+                )
+            else:
+                lines.append(
+                    f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | "
+                    f"{_cost(best)} | {_e(best.error)} | {_e(best.final_error)} | {best.status} |"
+                )
+    return lines
+
+
+def smallest_errors(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """The cheapest run near the smallest error of each optimizer and integrator."""
+    scenes, pairs = scenes_in(rows), sweep_pairs(rows)
+    lines = [
         "",
         "## Smallest error each optimizer reached",
         "",
@@ -747,7 +740,13 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
                     f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | {_cost(best)} | "
                     f"{_e(best.error)} | {_e(best.final_error)} | {best.status} |"
                 )
-    lines += [
+    return lines
+
+
+def discretisation_errors(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """The tight runs' error against h, per integrator, with the observed order."""
+    scenes, integrators = scenes_in(rows), integrators_in(rows)
+    lines = [
         "",
         "## Time-discretisation error (Newton–CG at the reference tolerance) and observed order",
         "",
@@ -779,7 +778,13 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
                 f"| {scene} | {integrator} | **fitted order** | **{_f(order, 2)}** | "
                 f"{order_verdict(order, integrator, series)} | | | | |"
             )
-    lines += [
+    return lines
+
+
+def reference_convergence(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """Whether x_ref is converged: its h-halving difference against the smallest error reported."""
+    scenes, reference = scenes_in(rows), next(r for r in rows if r.role == "reference")
+    lines = [
         "",
         "## Is the reference converged?",
         "",
@@ -807,8 +812,13 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
             f"{ref.unconverged_steps + half.unconverged_steps}/{ref.steps + half.steps} | "
             f"{reference_verdict(check['ratio'])} | {_e(euler_at_reference_h(rows, scene), 2)} |"
         )
+    return lines
+
+
+def solver_errors(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """The sweep's solver error at `--solver-dt`, against the tight run of that h."""
     solver_dt = fraction_label(args.solver_dt)
-    lines += [
+    lines = [
         "",
         f"## Solver error at h = {solver_dt} s (against Newton–CG at {args.reference_tol:g} m/s, same h "
         "and integrator)",
@@ -824,7 +834,13 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
                 f"{_e(r.solver_final_error)} | {_f(r.iterations_per_step)} | "
                 f"{r.unconverged_steps}/{r.steps_done} | {_cost(r)} | {r.status} |"
             )
-    lines += [
+    return lines
+
+
+def failures(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """How many runs of each optimizer and integrator failed, and how."""
+    scenes, pairs = scenes_in(rows), sweep_pairs(rows)
+    lines = [
         "",
         "## Failures per optimizer and integrator",
         "",
@@ -846,7 +862,12 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
                 + " | ".join(str(v) for v in count.values())
                 + f" | {steps}/{taken} |"
             )
-    lines += [
+    return lines
+
+
+def every_run(rows: list[Run], args: argparse.Namespace) -> list[str]:
+    """Every run's row."""
+    lines = [
         "",
         "## Every run",
         "",
@@ -862,6 +883,18 @@ def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fract
             f"{_f(r.solves_per_step, 2)} | {_cost(r)} | {_e(r.error)} | {_e(r.final_error)} | "
             f"{_e(r.solver_error)} | {_e(r.solver_final_error)} |"
         )
+    return lines
+
+
+def markdown(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fraction]) -> str:
+    """The results as markdown tables: what was run, then one section per question."""
+    lines = introduction(rows, args, seconds)
+    for accuracy in ACCURACIES:
+        lines += fastest(rows, accuracy)
+    sections = (smallest_errors, discretisation_errors, reference_convergence, solver_errors, failures,
+        every_run)
+    for section in sections:
+        lines += section(rows, args)
     return "\n".join(lines) + "\n"
 
 
@@ -882,10 +915,7 @@ def plot_work_precision(rows: list[Run], tols: list[float], path: Path) -> None:
     """Error against wall time per simulated second, log–log, one panel per scene: a marker per run
     (colour: optimizer and integrator, shape: tolerance, hollow: some steps unconverged) and each
     (optimizer, integrator) pair's front (solid: implicit Euler, dashed: TR-BDF2)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.lines import Line2D
 
     scenes = list(dict.fromkeys(r.scene for r in rows))
@@ -993,10 +1023,7 @@ def plot_error_sources(rows: list[Run], args: argparse.Namespace, path: Path) ->
     """Top: time-discretisation error against h (tight Newton–CG) per integrator, with the observed
     orders and the reference check. Bottom: solver error against tolerance at h = `args.solver_dt`, per
     optimizer and integrator."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.ticker import NullFormatter
 
     scenes = list(dict.fromkeys(r.scene for r in rows))
@@ -1200,21 +1227,18 @@ def settings_of(rows: list[Run], args: argparse.Namespace) -> dict[str, Fraction
 
 def write_outputs(rows: list[Run], args: argparse.Namespace, seconds: dict[str, Fraction]) -> None:
     """CSV, markdown table and both figures in `args.out`; prints the table."""
-    table = markdown(rows, args, seconds)
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    bench_step.write_csv(args.out / "work_precision.csv", [asdict(r) for r in rows])
-    (args.out / "work_precision.md.tmp").write_text(table)
-    (args.out / "work_precision.md.tmp").replace(args.out / "work_precision.md")
+    text = markdown(rows, args, seconds)
+    print(text)
+    plots = None if args.no_plot else lambda path: plot_work_precision(rows, args.tols, path)
+    write_files(args.out, "work_precision", rows, text, plots)
     if not args.no_plot:
-        plot_work_precision(rows, args.tols, args.out / "work_precision.png")
         plot_error_sources(rows, args, args.out / "work_precision_errors.png")
 
 
 def main(argv: list[str] | None = None) -> list[Run]:
     """Run the benchmark; write CSV, markdown and plots to `--out`; return every run's row."""
     args = parse_args(argv)
-    torch.set_num_threads(args.threads)
+    configure_threads(args.threads, retain_memory=False)
     if args.from_csv is not None:
         rows = read_csv(args.from_csv)
         write_outputs(rows, args, settings_of(rows, args))
@@ -1237,7 +1261,7 @@ def main(argv: list[str] | None = None) -> list[Run]:
         for name in args.scenes:
             rows += run_scene(name, seconds[name], args, progress)
             args.out.mkdir(parents=True, exist_ok=True)  # the rows so far, in case a later scene fails
-            bench_step.write_csv(args.out / "work_precision.csv", [asdict(r) for r in rows])
+            write_csv(args.out / "work_precision.csv", rows)
     write_outputs(rows, args, seconds)
     return rows
 

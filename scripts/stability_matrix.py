@@ -41,16 +41,16 @@ if any cell is WRONG.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import re
 import sys
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import _bench
 import torch
 from torch import Tensor
 
@@ -646,16 +646,12 @@ def table(cells: Sequence[Cell]) -> str:
     case_names = list(dict.fromkeys(cell.case for cell in cells))
     optimizer_names = list(dict.fromkeys(cell.optimizer for cell in cells))
     by_key = {(cell.case, cell.optimizer): cell for cell in cells}
-    lines = [
-        "| case | " + " | ".join(LABELS.get(name, name) for name in optimizer_names) + " |",
-        "|---|" + "---|" * len(optimizer_names),
+    header = ["case", *(LABELS.get(name, name) for name in optimizer_names)]
+    rows = [
+        [case, *(short(by_key[case, name]) if (case, name) in by_key else "" for name in optimizer_names)]
+        for case in case_names
     ]
-    for case_name in case_names:
-        row = [
-            short(by_key[case_name, name]) if (case_name, name) in by_key else "" for name in optimizer_names
-        ]
-        lines.append(f"| {case_name} | " + " | ".join(row) + " |")
-    return "\n".join(lines)
+    return "\n".join(_bench.table(header, rows, align="l" * len(header)))
 
 
 def counts(cells: Sequence[Cell]) -> dict[str, int]:
@@ -665,18 +661,14 @@ def counts(cells: Sequence[Cell]) -> dict[str, int]:
 
 def optimizer_summary(cells: Sequence[Cell]) -> str:
     """A markdown table per optimizer: outcomes, outer iterations and wall time over its cells."""
-    lines = [
-        "| optimizer | pass | clear error | WRONG | iterations | seconds |",
-        "|---|---:|---:|---:|---:|---:|",
-    ]
+    rows = []
     for name in dict.fromkeys(cell.optimizer for cell in cells):
         own = [cell for cell in cells if cell.optimizer == name]
         tally = counts(own)
-        lines.append(
-            f"| {LABELS.get(name, name)} | {tally[PASS]} | {tally[CLEAR]} | {tally[WRONG]} | "
-            f"{sum(cell.iterations for cell in own)} | {sum(cell.seconds for cell in own):.0f} |"
-        )
-    return "\n".join(lines)
+        rows.append([LABELS.get(name, name), tally[PASS], tally[CLEAR], tally[WRONG],
+                     sum(cell.iterations for cell in own), f"{sum(cell.seconds for cell in own):.0f}"])
+    header = ["optimizer", "pass", "clear error", "WRONG", "iterations", "seconds"]
+    return "\n".join(_bench.table(header, rows))
 
 
 def markdown(cells: Sequence[Cell], command: str, threads: int) -> str:
@@ -729,20 +721,13 @@ def markdown(cells: Sequence[Cell], command: str, threads: int) -> str:
 
 
 def write(cells: Sequence[Cell], out: Path, command: str, threads: int) -> tuple[Path, Path]:
-    """Write `stability_matrix.md` and `stability_matrix.csv` to `out`; returns their paths."""
-    out.mkdir(parents=True, exist_ok=True)
-    md_path, csv_path = out / "stability_matrix.md", out / "stability_matrix.csv"
-    md_path.write_text(markdown(cells, command, threads))
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=[column.name for column in fields(Cell)])
-        writer.writeheader()
-        for cell in cells:
-            writer.writerow(
-                {
-                    key: f"{value:.6g}" if isinstance(value, float) else value
-                    for key, value in asdict(cell).items()
-                }
-            )
+    """Write `stability_matrix.md` and `stability_matrix.csv` to `out`, each whole or not at all;
+    returns their paths (floats in the CSV to 6 significant digits)."""
+    rows = [
+        {key: f"{value:.6g}" if isinstance(value, float) else value for key, value in asdict(cell).items()}
+        for cell in cells
+    ]
+    csv_path, md_path = _bench.write_outputs(out, "stability_matrix", rows, markdown(cells, command, threads))
     return md_path, csv_path
 
 
@@ -769,7 +754,7 @@ def main(argv: list[str] | None = None) -> list[Cell]:
         help="s after which a cell that has warned stops; 0: never",
     )
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    _bench.configure_threads(args.threads, retain_memory=False)
     budget = args.budget if args.budget > 0 else None
     cells = run(args.cases, args.optimizers, quick=args.quick, budget=budget, log=print)
     print()
