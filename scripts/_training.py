@@ -673,7 +673,7 @@ def random_baseline(task: Task, episodes: int, seed: int = 0) -> Evaluation:
 
 
 def suggested_gait_controller(task: Task) -> Controller:
-    """The creature's suggested open-loop gait (`Creature.gait_action`, what walk_NAME.py uses, without
+    """The creature's suggested open-loop gait (`Creature.gait_action`, what walk.py uses, without
     its ramp-in) as a controller: a reference for the trained ones."""
     from energysim.creatures import load_creature
 
@@ -743,7 +743,7 @@ def main(argv: list[str] | None = None) -> int:
         "distance: of the centre of mass per episode. Wall time: training only, one thread, on a shared "
         "machine (noisy). The random policy draws uniform actions (the expected return of its control "
         f"cost alone is {expected_random_ctrl_return(task):+.3f}); the suggested gait is the creature's "
-        "open-loop sine of walk_NAME.py, without its ramp-in.\n\n"
+        "open-loop sine of walk.py, without its ramp-in.\n\n"
     )
     text = header + comparison_table(rows)
     atomic_write(args.out / "training.md", lambda temporary: temporary.write_text(text))

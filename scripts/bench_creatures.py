@@ -1,6 +1,6 @@
 """Benchmark the walking creatures: time per step, real-time factor, distance, and the error beside them.
 
-Each creature walks its default gait (`walk_NAME.SPEC`) at its default h from rest for `--seconds`; the
+Each creature walks its default gait (`walk.SPECS[NAME]`) at its default h from rest for `--seconds`; the
 same run is repeated at a 10× tighter solver tolerance as the reference, and the error is the distance
 between the two final centres of mass (what the looser tolerance costs in where the creature ends up).
 Timing is the wall time of each `es.step` call. The real-time factor is simulated time over the summed
@@ -57,7 +57,7 @@ class Row:
 def bench(name: str, seconds: float, tol: float | None, compile: bool = False) -> Row:
     """Walk `name` for `seconds` at `tol` (default: the script's) and at `tol` / 10; one table row.
     With `compile`, a first walk of `COMPILE_WARMUP` s compiles the objective's functions untimed."""
-    spec = importlib.import_module(f"walk_{name}").SPEC
+    spec = importlib.import_module("walk").SPECS[name]
     creature = load_creature(name)
     gait = default_gait(spec, creature)
     tol = spec.tol if tol is None else tol

@@ -11,7 +11,7 @@ step h and velocity-residual tolerance of a grid, float64:
   falling at 1 m/s (`bench_step.landing_start`, placed for h = 1/60 s: it lands at t ≈ 0.06 s) and
   thrown sideways at `SLIDE_SPEED`, so that it lands, slides and is stopped by friction;
 - quadruped: the shipped quadruped (888 tets) walking its open-loop gait from rest
-  (`_locomotion.build_scene`, `default_gait`, `initial_state`; `walk_quadruped.SPEC`).
+  (`_locomotion.build_scene`, `default_gait`, `initial_state`; `walk.SPECS["quadruped"]`).
 
 Errors compare vertex positions at the times every run shares (multiples of the least common multiple
 of the time steps, 1/12 s for the default grid; nothing is interpolated):
@@ -67,7 +67,7 @@ import _locomotion
 import bench_step
 import cantilever
 import torch
-import walk_quadruped
+import walk
 from _common import INTEGRATOR_ORDER, save_figure, simulate
 from torch import Tensor
 from tqdm import tqdm
@@ -118,14 +118,14 @@ def build_drop(size: str) -> Setup:
 
 @lru_cache(maxsize=1)
 def _quadruped() -> Creature:
-    return load_creature(walk_quadruped.SPEC.creature)
+    return load_creature(walk.SPECS["quadruped"].creature)
 
 
 def build_quadruped(size: str) -> Setup:
     """The shipped quadruped at rest on the ground, driven by its default gait (one size only)."""
     creature = _quadruped()
-    scene = _locomotion.build_scene(creature, friction=walk_quadruped.SPEC.friction)
-    gait = _locomotion.default_gait(walk_quadruped.SPEC, creature)
+    scene = _locomotion.build_scene(creature, friction=walk.SPECS["quadruped"].friction)
+    gait = _locomotion.default_gait(walk.SPECS["quadruped"], creature)
     return Setup(scene, _locomotion.initial_state(scene), gait.action)
 
 
