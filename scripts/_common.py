@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from types import ModuleType
 
 import torch
 from torch import Tensor
@@ -189,18 +190,21 @@ def render(rollout: Rollout, scene: es.Scene, out: Path, name: str) -> tuple[Pat
         scalar_name="speed (m/s)",
         title=f"{name}, t = {float(rollout.times[-1]):.2f} s",
     )
-    frame_rate = 1.0 / (rollout.dt * int(rollout.frame_steps[1] - rollout.frame_steps[0]))
-    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
-    # the last frame too, so the animation ends where the PNG does
-    shown = sorted({*range(0, len(rollout.times), stride), len(rollout.times) - 1})
-    gif = render_gif(
-        out / f"{name}.gif",
-        list(rollout.positions[shown]),
-        faces,
-        scalars=speeds[shown],
-        fps=frame_rate / stride,
-    )
+    shown, fps = gif_frames(rollout.frame_steps, rollout.dt)
+    positions = list(rollout.positions[shown])
+    gif = render_gif(out / f"{name}.gif", positions, faces, scalars=speeds[shown], fps=fps)
     return png, gif
+
+
+def gif_frames(frame_steps: Tensor, dt: float) -> tuple[list[int], float]:
+    """Which saved frames (steps `frame_steps` `[F]`, evenly spaced, of `dt` s) a real-time GIF shows,
+    and its frame rate in 1/s: every frame up to `MAX_GIF_FPS`, else every k-th one; always the last,
+    so the animation ends where the PNG does."""
+    frames = len(frame_steps)
+    spacing = int(frame_steps[1] - frame_steps[0]) if frames > 1 else 1
+    frame_rate = 1.0 / (dt * spacing)
+    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
+    return sorted({*range(0, frames, stride), frames - 1}), frame_rate / stride
 
 
 def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, float]) -> str:
@@ -221,32 +225,24 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     return "\n".join(lines)
 
 
-def script_main(
-    argv: list[str] | None,
-    doc: str,
-    name: str,
-    *,
-    seconds: float,
-    resolution: int,
-    build_scene: Callable[[int, float, str, float], es.Scene],
-    run: Callable[..., Rollout],
-    measure: Callable[[Rollout], dict[str, float]],
-    check: Callable[[Rollout], None],
-) -> int:
+def script_main(argv: list[str] | None, script: ModuleType, *, seconds: float, resolution: int) -> int:
     """The command line every scene script shares: build, run, write, render, summarise, check.
 
+    `script` is the scene script's module: its docstring, ``NAME``, ``build_scene(resolution, dt, solver,
+    tol)``, ``run(scene, seconds, out, frames_every=...)``, ``measure(rollout)`` and ``check(rollout)``.
     Returns 0 when the run passes `check`, 1 otherwise (the failed predicate is printed).
     """
-    args = make_parser(doc, name, seconds=seconds, resolution=resolution).parse_args(argv)
-    scene = build_scene(args.resolution, args.dt, args.solver, args.tol)
-    rollout = run(scene, args.seconds, args.out, frames_every=args.frames_every)
+    name = script.NAME
+    args = make_parser(script.__doc__, name, seconds=seconds, resolution=resolution).parse_args(argv)
+    scene = script.build_scene(args.resolution, args.dt, args.solver, args.tol)
+    rollout = script.run(scene, args.seconds, args.out, frames_every=args.frames_every)
     outputs = [rollout.vtk]
     if not args.no_render:
         outputs += render(rollout, scene, args.out, name)
-    print(summary(name, scene, rollout, measure(rollout)))
+    print(summary(name, scene, rollout, script.measure(rollout)))
     print("  wrote " + ", ".join(str(p) for p in outputs))
     try:
-        check(rollout)
+        script.check(rollout)
     except AssertionError as err:
         print(f"CHECK FAILED: {err}", file=sys.stderr)
         return 1

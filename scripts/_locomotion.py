@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import MAX_GIF_FPS, SOLVERS, Rollout, make_solver, simulate
+from _common import SOLVERS, Rollout, gif_frames, make_solver, simulate
 from torch import Tensor
 
 import energysim as es
@@ -327,13 +327,8 @@ def write_outputs(
             title=f"{name}, t = {float(rollout.times[-1]):.2f} s",
         )
     )
-    spacing = int(rollout.frame_steps[1] - rollout.frame_steps[0]) if frames > 1 else 1
-    frame_rate = 1.0 / (rollout.dt * spacing)
-    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
-    shown = sorted({*range(0, frames, stride), frames - 1})
-    animation = dict(
-        scalars=colour[shown], fps=frame_rate / stride, window_size=window_size, ground_height=0.0
-    )
+    shown, fps = gif_frames(rollout.frame_steps, rollout.dt)
+    animation = dict(scalars=colour[shown], fps=fps, window_size=window_size, ground_height=0.0)
     positions = list(rollout.positions[shown])
     written.append(render_gif(out / f"{name}.gif", positions, faces, **animation))
     movie = render_mp4(out / f"{name}.mp4", positions, faces, **animation)
