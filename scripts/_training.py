@@ -117,26 +117,9 @@ class Task:
         if self.integrator not in ("implicit_euler", "leapfrog"):
             raise ValueError(f"integrator must be 'implicit_euler' or 'leapfrog', got {self.integrator!r}")
 
-    def vector_env(self, num_envs: int) -> Any:
-        """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
-        from energysim.envs import CreatureVectorEnv
-
-        return CreatureVectorEnv(
-            check_integer(num_envs, "num_envs", 1),
-            self.creature,
-            frame_skip=self.frame_skip,
-            solver_tol=self.solver_tol,
-            solver_compile=self.solver_compile,
-            max_episode_steps=self.episode_steps,
-            integrator=self.integrator,
-            activation_time_constant=0.0,
-        )
-
-    def simulation(self) -> Any:
-        """The batched `CreatureSimulation` of this task (what `vector_env` steps)."""
-        from energysim.envs import CreatureEnvConfig, CreatureSimulation
-
-        config = CreatureEnvConfig(
+    def _env_options(self) -> dict[str, Any]:
+        # the env filters no activation: the controllers do (see the module docstring)
+        return dict(
             creature=self.creature,
             frame_skip=self.frame_skip,
             solver_tol=self.solver_tol,
@@ -145,7 +128,18 @@ class Task:
             integrator=self.integrator,
             activation_time_constant=0.0,
         )
-        return CreatureSimulation(config)
+
+    def vector_env(self, num_envs: int) -> Any:
+        """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
+        from energysim.envs import CreatureVectorEnv
+
+        return CreatureVectorEnv(check_integer(num_envs, "num_envs", 1), **self._env_options())
+
+    def simulation(self) -> Any:
+        """The batched `CreatureSimulation` of this task (what `vector_env` steps)."""
+        from energysim.envs import CreatureEnvConfig, CreatureSimulation
+
+        return CreatureSimulation(CreatureEnvConfig(**self._env_options()))
 
 
 @dataclass(frozen=True)
@@ -586,13 +580,41 @@ def timed_evaluation(venv: CreatureVecEnv, controller: Controller) -> tuple[Eval
     return result, time.perf_counter() - start
 
 
+def load_run(
+    out: Path, fixed: dict[str, Any], policy: Any, optimizer: Any
+) -> tuple[dict[str, Any], list[CurvePoint]]:
+    """Load ``out/checkpoint.pt`` (written with the settings `fixed`) into `policy`, `optimizer` (both
+    torch modules or optimizers) and the global random states; returns the checkpoint and its curve."""
+    saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
+    policy.load_state_dict(saved["policy"])
+    optimizer.load_state_dict(saved["optimizer"])
+    set_rng_state(saved["rng"])
+    return saved, [CurvePoint(**row) for row in saved["curve"]]
+
+
 def log_evaluation(
-    out: Path, curve: list[CurvePoint], point: CurvePoint, payload: dict[str, Any], progress: bool
+    out: Path,
+    curve: list[CurvePoint],
+    point: CurvePoint,
+    checkpoint: tuple[dict[str, Any], Any, Any, dict[str, Any]],
+    progress: bool,
 ) -> None:
-    """Append `point` to `curve`, then write ``out/checkpoint.pt`` (`payload` and the curve) and
-    ``out/curve.csv``, each whole; with `progress`, print the evaluation above the progress bar."""
+    """Append `point` to `curve`, then write ``out/checkpoint.pt`` and ``out/curve.csv``, each whole;
+    with `progress`, print the evaluation above the progress bar.
+
+    `checkpoint` is (the settings a resume checks, the policy, its optimizer, the method's counters):
+    the checkpoint holds them, the global random states and the curve, what `load_run` reads back."""
     curve.append(point)
-    save_checkpoint(out / CHECKPOINT_NAME, {**payload, "curve": [asdict(p) for p in curve]})
+    fixed, policy, optimizer, counters = checkpoint
+    payload = {
+        "settings": fixed,
+        "policy": policy.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "rng": rng_state(),
+        "curve": [asdict(p) for p in curve],
+        **counters,
+    }
+    save_checkpoint(out / CHECKPOINT_NAME, payload)
     write_curve(out / CURVE_NAME, curve)
     if progress:
         tqdm.write(

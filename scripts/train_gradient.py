@@ -44,14 +44,12 @@ from _training import (
     checkpoint_settings,
     common_parser,
     evaluate,
-    load_checkpoint,
+    load_run,
     log_evaluation,
     make_vec_env,
     plot_curves,
     progress_bar,
-    rng_state,
     script_main,
-    set_rng_state,
     timed_evaluation,
     write_policy_outputs,
 )
@@ -232,22 +230,14 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     state = episode_start(simulation, settings.seed, episode, settings.num_envs)
     activation = torch.zeros(settings.num_envs, simulation.num_actuators, dtype=state.dtype)
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
-        policy.load_state_dict(saved["policy"])
-        optimizer.load_state_dict(saved["optimizer"])
-        set_rng_state(saved["rng"])
-        curve = [CurvePoint(**row) for row in saved["curve"]]
+        saved, curve = load_run(out, fixed, policy, optimizer)
         env_steps, updates, wall = saved["env_steps"], saved["updates"], saved["wall_seconds"]
         episode, step_in_episode, failures = saved["episode"], saved["step_in_episode"], saved["failures"]
         state, activation = saved["state"], saved["activation"]
 
     def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
         point = CurvePoint.of(METHOD, env_steps, updates, wall, result, seconds)
-        payload = {
-            "settings": fixed,
-            "policy": policy.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "rng": rng_state(),
+        counters = {
             "env_steps": env_steps,
             "updates": updates,
             "wall_seconds": wall,
@@ -257,7 +247,7 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
             "state": state,
             "activation": activation,
         }
-        log_evaluation(out, curve, point, payload, progress)
+        log_evaluation(out, curve, point, (fixed, policy, optimizer, counters), progress)
 
     if not curve:
         checkpoint_and_log(*timed_evaluation(evaluation_env, controller(policy)))

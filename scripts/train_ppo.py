@@ -43,14 +43,12 @@ from _training import (
     checkpoint_settings,
     common_parser,
     evaluate,
-    load_checkpoint,
+    load_run,
     log_evaluation,
     make_vec_env,
     plot_curves,
     progress_bar,
-    rng_state,
     script_main,
-    set_rng_state,
     timed_evaluation,
     write_policy_outputs,
 )
@@ -171,27 +169,15 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     curve: list[CurvePoint] = []
     wall = 0.0
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
-        model.policy.load_state_dict(saved["policy"])
-        model.policy.optimizer.load_state_dict(saved["optimizer"])
-        set_rng_state(saved["rng"])
+        saved, curve = load_run(out, fixed, model.policy, model.policy.optimizer)
         model.num_timesteps, model._n_updates = saved["env_steps"], saved["updates"]
-        curve = [CurvePoint(**row) for row in saved["curve"]]
         wall = saved["wall_seconds"]
 
     def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
         updates = model._n_updates // settings.n_epochs
         point = CurvePoint.of(METHOD, model.num_timesteps, updates, wall, result, seconds)
-        payload = {
-            "settings": fixed,
-            "policy": model.policy.state_dict(),
-            "optimizer": model.policy.optimizer.state_dict(),
-            "rng": rng_state(),
-            "env_steps": model.num_timesteps,
-            "updates": model._n_updates,
-            "wall_seconds": wall,
-        }
-        log_evaluation(out, curve, point, payload, progress)
+        counters = {"env_steps": model.num_timesteps, "updates": model._n_updates, "wall_seconds": wall}
+        log_evaluation(out, curve, point, (fixed, model.policy, model.policy.optimizer, counters), progress)
 
     if not curve:
         checkpoint_and_log(*timed_evaluation(evaluation_env, controller(model)))
