@@ -36,7 +36,7 @@ from torch import Tensor
 
 import energysim as es
 from energysim.cpu import configure as configure_cpu
-from energysim.creatures import Creature, load_creature, resting_state, scene_ground
+from energysim.creatures import CREATURES, Creature, load_creature, resting_state, scene_ground
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.export import element_activation, export_rollout, render_gif, render_mp4, render_png
 
@@ -378,7 +378,7 @@ def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.Argume
     """The walking flags, with `spec`'s and the creature's defaults (``--creature`` is read first)."""
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument
-    add("--creature", default=spec.creature, help="which shipped creature walks")
+    add("--creature", choices=CREATURES, default=spec.creature, help="which shipped creature walks")
     add("--seconds", type=float, default=spec.seconds, help="simulated time in s")
     add("--dt", type=float, default=spec.dt, help="time step h in s")
     add("--optimizer", "--solver", dest="optimizer", choices=SOLVERS, default="newton-cg")
