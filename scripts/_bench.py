@@ -150,7 +150,7 @@ def step_through(
 
 def walk_spec(creature: str) -> Any:
     """The walking script's settings (`WalkSpec`) of `creature`: its gait, h and friction."""
-    return importlib.import_module(f"walk_{creature}").SPEC
+    return importlib.import_module("walk").SPECS[creature]
 
 
 def loglog_slope(x: Sequence[float], y: Sequence[float]) -> float:

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import torch
 from torch import Tensor
@@ -24,7 +24,6 @@ from energysim.fem.materials import stable_neo_hookean_density
 SOLVERS = ("newton-cg", "lbfgs", "adam")
 # each of `es.INTEGRATORS`' order of accuracy in h away from contact (on a step that touches an
 # obstacle TR-BDF2 takes an implicit-Euler step): what the benchmarks' convergence checks expect
-INTEGRATOR_ORDER = {"implicit_euler": 1, "tr_bdf2": 2, "leapfrog": 2}
 # GIF players clamp very short frame delays (under 2 cs) to slow ones, so the GIF plays at most this fast.
 MAX_GIF_FPS = 25.0
 
@@ -189,18 +188,21 @@ def render(rollout: Rollout, scene: es.Scene, out: Path, name: str) -> tuple[Pat
         scalar_name="speed (m/s)",
         title=f"{name}, t = {float(rollout.times[-1]):.2f} s",
     )
-    frame_rate = 1.0 / (rollout.dt * int(rollout.frame_steps[1] - rollout.frame_steps[0]))
-    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
-    # the last frame too, so the animation ends where the PNG does
-    shown = sorted({*range(0, len(rollout.times), stride), len(rollout.times) - 1})
-    gif = render_gif(
-        out / f"{name}.gif",
-        list(rollout.positions[shown]),
-        faces,
-        scalars=speeds[shown],
-        fps=frame_rate / stride,
-    )
+    shown, fps = gif_frames(rollout.frame_steps, rollout.dt)
+    positions = list(rollout.positions[shown])
+    gif = render_gif(out / f"{name}.gif", positions, faces, scalars=speeds[shown], fps=fps)
     return png, gif
+
+
+def gif_frames(frame_steps: Tensor, dt: float) -> tuple[list[int], float]:
+    """Which saved frames (steps `frame_steps` `[F]`, evenly spaced, of `dt` s) a real-time GIF shows,
+    and its frame rate in 1/s: every frame up to `MAX_GIF_FPS`, else every k-th one; always the last,
+    so the animation ends where the PNG does."""
+    frames = len(frame_steps)
+    spacing = int(frame_steps[1] - frame_steps[0]) if frames > 1 else 1
+    frame_rate = 1.0 / (dt * spacing)
+    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
+    return sorted({*range(0, frames, stride), frames - 1}), frame_rate / stride
 
 
 def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, float]) -> str:
@@ -221,63 +223,26 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
     return "\n".join(lines)
 
 
-def script_main(
-    argv: list[str] | None,
-    doc: str,
-    name: str,
-    *,
-    seconds: float,
-    resolution: int,
-    build_scene: Callable[[int, float, str, float], es.Scene],
-    run: Callable[..., Rollout],
-    measure: Callable[[Rollout], dict[str, float]],
-    check: Callable[[Rollout], None],
-) -> int:
+def script_main(argv: list[str] | None, script: ModuleType, *, seconds: float, resolution: int) -> int:
     """The command line every scene script shares: build, run, write, render, summarise, check.
 
+    `script` is the scene script's module: its docstring, ``NAME``, ``build_scene(resolution, dt, solver,
+    tol)``, ``run(scene, seconds, out, frames_every=...)``, ``measure(rollout)`` and ``check(rollout)``.
     Returns 0 when the run passes `check`, 1 otherwise (the failed predicate is printed).
     """
-    args = make_parser(doc, name, seconds=seconds, resolution=resolution).parse_args(argv)
-    scene = build_scene(args.resolution, args.dt, args.solver, args.tol)
-    rollout = run(scene, args.seconds, args.out, frames_every=args.frames_every)
+    name = script.NAME
+    args = make_parser(script.__doc__, name, seconds=seconds, resolution=resolution).parse_args(argv)
+    scene = script.build_scene(args.resolution, args.dt, args.solver, args.tol)
+    rollout = script.run(scene, args.seconds, args.out, frames_every=args.frames_every)
     outputs = [rollout.vtk]
     if not args.no_render:
         outputs += render(rollout, scene, args.out, name)
-    print(summary(name, scene, rollout, measure(rollout)))
+    print(summary(name, scene, rollout, script.measure(rollout)))
     print("  wrote " + ", ".join(str(p) for p in outputs))
     try:
-        check(rollout)
+        script.check(rollout)
     except AssertionError as err:
         print(f"CHECK FAILED: {err}", file=sys.stderr)
         return 1
     print("  check passed")
     return 0
-
-
-def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
-    """`rows` as CSV at `path`, written to a temporary file first."""
-    temporary = path.with_suffix(".csv.tmp")
-    with open(temporary, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    temporary.replace(path)
-
-
-def write_table_files(out: Path, name: str, rows: list[object], table: str) -> None:
-    """`out/<name>.csv` (one line per dataclass row) and `out/<name>.md` (`table`), each written whole
-    (to a temporary file, then renamed) or not at all."""
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / f"{name}.csv", [asdict(row) for row in rows])
-    (out / f"{name}.md.tmp").write_text(table)
-    (out / f"{name}.md.tmp").replace(out / f"{name}.md")
-
-
-def save_figure(figure: object, path: Path) -> None:
-    """Save a matplotlib figure as PNG at `path` (to a temporary file, then renamed) and close it."""
-    import matplotlib.pyplot as plt
-
-    temporary = path.with_suffix(".tmp.png")
-    figure.savefig(temporary, dpi=120)
-    temporary.replace(path)
-    plt.close(figure)

@@ -1,9 +1,9 @@
 """What the walking scripts share: a creature on frictional ground, an open-loop gait, metrics and a check.
 
-Each `walk_NAME.py` is a `WalkSpec` (its defaults and how its gait's phases follow from one phase lag)
-and a call to `script_main`. The scene: the shipped creature (`energysim.creatures`), stable neo-Hookean
-body, fibre muscles, gravity and an IPC ground at y = 0 with lagged Coulomb friction, stepped by
-implicit Euler. The creature starts at rest, lifted by half the ground's barrier distance so it
+`walk.py` holds one `WalkSpec` per creature (its defaults and how its gait's phases follow from one
+phase lag) and calls `script_main`. The scene: the shipped creature (`energysim.creatures`), stable
+neo-Hookean body, fibre muscles, gravity and an IPC ground at y = 0 with lagged Coulomb friction,
+stepped by implicit Euler. The creature starts at rest, lifted by half the ground's barrier distance so it
 touches the ground without being inside it.
 
 The gait is open loop: actuator j gets a_j(t) = r(t) A sin(2π f t + φ_j), eased in by r over the first
@@ -31,17 +31,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import SOLVERS, Rollout, make_solver, simulate
+from _common import SOLVERS, Rollout, gif_frames, make_solver, simulate
 from torch import Tensor
 
 import energysim as es
 from energysim.cpu import configure as configure_cpu
-from energysim.creatures import Creature, load_creature, resting_state, scene_ground
+from energysim.creatures import CREATURES, Creature, load_creature, resting_state, scene_ground
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.export import element_activation, export_rollout, render_gif, render_mp4, render_png
-
-# GIF players clamp frame delays under 2 cs, so a GIF plays at most this fast (as in _common)
-MAX_GIF_FPS = 25.0
 
 
 @dataclass(frozen=True)
@@ -330,13 +327,8 @@ def write_outputs(
             title=f"{name}, t = {float(rollout.times[-1]):.2f} s",
         )
     )
-    spacing = int(rollout.frame_steps[1] - rollout.frame_steps[0]) if frames > 1 else 1
-    frame_rate = 1.0 / (rollout.dt * spacing)
-    stride = max(1, math.ceil(frame_rate / MAX_GIF_FPS))
-    shown = sorted({*range(0, frames, stride), frames - 1})
-    animation = dict(
-        scalars=colour[shown], fps=frame_rate / stride, window_size=window_size, ground_height=0.0
-    )
+    shown, fps = gif_frames(rollout.frame_steps, rollout.dt)
+    animation = dict(scalars=colour[shown], fps=fps, window_size=window_size, ground_height=0.0)
     positions = list(rollout.positions[shown])
     written.append(render_gif(out / f"{name}.gif", positions, faces, **animation))
     movie = render_mp4(out / f"{name}.mp4", positions, faces, **animation)
@@ -383,9 +375,10 @@ def summary(name: str, scene: es.Scene, rollout: Rollout, figures: dict[str, flo
 
 
 def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.ArgumentParser:
-    """The flags every walking script takes, with `spec`'s and the creature's defaults."""
+    """The walking flags, with `spec`'s and the creature's defaults (``--creature`` is read first)."""
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument
+    add("--creature", choices=CREATURES, default=spec.creature, help="which shipped creature walks")
     add("--seconds", type=float, default=spec.seconds, help="simulated time in s")
     add("--dt", type=float, default=spec.dt, help="time step h in s")
     add("--optimizer", "--solver", dest="optimizer", choices=SOLVERS, default="newton-cg")
@@ -415,12 +408,16 @@ def make_parser(doc: str, spec: WalkSpec, creature: Creature) -> argparse.Argume
     return parser
 
 
-def script_main(argv: list[str] | None, doc: str, spec: WalkSpec) -> int:
-    """Build, walk, write, render, summarise and check; returns 0 when the check passes, else 1."""
-    shipped = load_creature(spec.creature)
-    args = make_parser(doc, spec, shipped).parse_args(argv)
+def script_main(argv: list[str] | None, doc: str, specs: dict[str, WalkSpec], default: str) -> int:
+    """Build, walk, write, render, summarise and check the creature named by ``--creature`` (`default`
+    when absent; its defaults come from `specs`); returns 0 when the check passes, else 1."""
+    chooser = argparse.ArgumentParser(add_help=False)
+    chooser.add_argument("--creature", choices=sorted(specs), default=default)
+    name = chooser.parse_known_args(argv)[0].creature  # exits with the valid names on an unknown one
+    spec = specs[name]
+    args = make_parser(doc, spec, load_creature(name)).parse_args(argv)
     configure_cpu(args.threads)
-    creature = refined_creature(spec.creature, args.refine)
+    creature = refined_creature(name, args.refine)
     ramp = args.ramp / args.frequency if args.frequency > 0 else 0.0  # Gait itself rejects f <= 0
     gait = Gait(args.frequency, args.amplitude, tuple(spec.phases(args.phase_lag)), ramp)
     scene = build_scene(creature, args.dt, args.friction, args.optimizer, args.tol, args.compile)
@@ -428,19 +425,14 @@ def script_main(argv: list[str] | None, doc: str, spec: WalkSpec) -> int:
     rollout = run(scene, gait, args.seconds, frames_every=args.frames_every, progress=not args.quiet)
     length = body_length(scene)
     figures = measure(rollout, length)
-    print(summary(spec.creature, scene, rollout, figures))
+    print(summary(name, scene, rollout, figures))
     print(
         f"  gait: f = {gait.frequency:g} Hz, A = {gait.amplitude:g}, phases (rad) "
         + ", ".join(f"{p:.3f}" for p in gait.phases)
     )
     if not args.no_vtk:
         written = write_outputs(
-            rollout,
-            scene,
-            args.out,
-            spec.creature,
-            render=not args.no_render,
-            window_size=tuple(args.window_size),
+            rollout, scene, args.out, name, render=not args.no_render, window_size=tuple(args.window_size)
         )
         print("  wrote " + ", ".join(str(p) for p in written))
     try:

@@ -34,6 +34,7 @@ import os
 import random
 import sys
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -42,6 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 # the evaluation episodes' seeds: EVAL_SEED + i, the same for every method, run and evaluation
 EVAL_SEED = 1_000_000
@@ -115,26 +117,9 @@ class Task:
         if self.integrator not in ("implicit_euler", "leapfrog"):
             raise ValueError(f"integrator must be 'implicit_euler' or 'leapfrog', got {self.integrator!r}")
 
-    def vector_env(self, num_envs: int) -> Any:
-        """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
-        from energysim.envs import CreatureVectorEnv
-
-        return CreatureVectorEnv(
-            check_integer(num_envs, "num_envs", 1),
-            self.creature,
-            frame_skip=self.frame_skip,
-            solver_tol=self.solver_tol,
-            solver_compile=self.solver_compile,
-            max_episode_steps=self.episode_steps,
-            integrator=self.integrator,
-            activation_time_constant=0.0,
-        )
-
-    def simulation(self) -> Any:
-        """The batched `CreatureSimulation` of this task (what `vector_env` steps)."""
-        from energysim.envs import CreatureEnvConfig, CreatureSimulation
-
-        config = CreatureEnvConfig(
+    def _env_options(self) -> dict[str, Any]:
+        # the env filters no activation: the controllers do (see the module docstring)
+        return dict(
             creature=self.creature,
             frame_skip=self.frame_skip,
             solver_tol=self.solver_tol,
@@ -143,7 +128,51 @@ class Task:
             integrator=self.integrator,
             activation_time_constant=0.0,
         )
-        return CreatureSimulation(config)
+
+    def vector_env(self, num_envs: int) -> Any:
+        """A `CreatureVectorEnv` of `num_envs` creatures for this task (float64, CPU)."""
+        from energysim.envs import CreatureVectorEnv
+
+        return CreatureVectorEnv(check_integer(num_envs, "num_envs", 1), **self._env_options())
+
+    def simulation(self) -> Any:
+        """The batched `CreatureSimulation` of this task (what `vector_env` steps)."""
+        from energysim.envs import CreatureEnvConfig, CreatureSimulation
+
+        return CreatureSimulation(CreatureEnvConfig(**self._env_options()))
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What a run of either training method is given (the flags both scripts take); each script's
+    `Settings` adds its method's own fields and may change the defaults."""
+
+    creature: str = "worm"
+    num_envs: int = 1
+    total_steps: int = 3000
+    episode_steps: int = 120
+    learning_rate: float = 0.05
+    seed: int = 0
+    eval_every: int = 600
+    eval_episodes: int = 2
+    solver_tol: float = 1e-4
+    solver_compile: bool = False
+    integrator: str = "implicit_euler"
+
+    def __post_init__(self) -> None:
+        self.task  # noqa: B018 - building the task checks its fields
+        check_integer(self.num_envs, "num_envs", 1)
+        check_integer(self.total_steps, "total_steps", 0)
+        check_number(self.learning_rate, "learning_rate", 0.0, strict=True)
+        check_integer(self.seed, "seed", 0)
+        check_integer(self.eval_every, "eval_every", 1)
+        check_integer(self.eval_episodes, "eval_episodes", 1)
+
+    @property
+    def task(self) -> Task:
+        return Task(
+            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+        )
 
 
 def make_vec_env(
@@ -544,12 +573,76 @@ def load_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any]:
     return payload
 
 
+def timed_evaluation(venv: CreatureVecEnv, controller: Controller) -> tuple[Evaluation, float]:
+    """`evaluate(venv, controller)` and its wall time in s."""
+    start = time.perf_counter()
+    result = evaluate(venv, controller)
+    return result, time.perf_counter() - start
+
+
+def load_run(
+    out: Path, fixed: dict[str, Any], policy: Any, optimizer: Any
+) -> tuple[dict[str, Any], list[CurvePoint]]:
+    """Load ``out/checkpoint.pt`` (written with the settings `fixed`) into `policy`, `optimizer` (both
+    torch modules or optimizers) and the global random states; returns the checkpoint and its curve."""
+    saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
+    policy.load_state_dict(saved["policy"])
+    optimizer.load_state_dict(saved["optimizer"])
+    set_rng_state(saved["rng"])
+    return saved, [CurvePoint(**row) for row in saved["curve"]]
+
+
+def log_evaluation(
+    out: Path,
+    curve: list[CurvePoint],
+    point: CurvePoint,
+    checkpoint: tuple[dict[str, Any], Any, Any, dict[str, Any]],
+    progress: bool,
+) -> None:
+    """Append `point` to `curve`, then write ``out/checkpoint.pt`` and ``out/curve.csv``, each whole;
+    with `progress`, print the evaluation above the progress bar.
+
+    `checkpoint` is (the settings a resume checks, the policy, its optimizer, the method's counters):
+    the checkpoint holds them, the global random states and the curve, what `load_run` reads back."""
+    curve.append(point)
+    fixed, policy, optimizer, counters = checkpoint
+    payload = {
+        "settings": fixed,
+        "policy": policy.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "rng": rng_state(),
+        "curve": [asdict(p) for p in curve],
+        **counters,
+    }
+    save_checkpoint(out / CHECKPOINT_NAME, payload)
+    write_curve(out / CURVE_NAME, curve)
+    if progress:
+        tqdm.write(
+            f"{point.method}: {point.env_steps} env steps, {point.wall_seconds:.0f} s: eval return "
+            f"{point.eval_return:+.3f} ± {point.eval_return_stderr:.3f}, distance "
+            f"{100 * point.eval_distance:+.2f} cm"
+        )
+
+
+def progress_bar(method: str, settings: RunSettings, done: int, progress: bool) -> tqdm:
+    """A bar over the run's `total_steps` env steps, `done` of them already taken."""
+    return tqdm(
+        total=settings.total_steps,
+        initial=min(done, settings.total_steps),
+        desc=method,
+        unit="step",
+        disable=not progress,
+        leave=False,
+    )
+
+
 def write_policy_outputs(
     scene: Any, result: Evaluation, out: Path, name: str, *, render: bool = True
 ) -> list[Path]:
     """VTK frames of the recorded evaluation episode in ``out/rollout`` (``frame.pvd``, activations
     included) and, with `render`, ``out/NAME.gif`` coloured by muscle activation. Returns the paths."""
-    from _locomotion import MAX_GIF_FPS, vertex_activation
+    from _common import gif_frames
+    from _locomotion import vertex_activation
 
     from energysim.export import export_rollout, render_gif
 
@@ -561,15 +654,14 @@ def write_policy_outputs(
         x = scene.split_state(states)[0]
         per_state = torch.cat([torch.zeros_like(activations[:1]), activations])
         colour = vertex_activation(scene, per_state)
-        stride = max(1, math.ceil(1.0 / scene.dt / MAX_GIF_FPS))
-        shown = sorted({*range(0, x.shape[0], stride), x.shape[0] - 1})
+        shown, fps = gif_frames(torch.arange(x.shape[0]), scene.dt)
         written.append(
             render_gif(
                 out / f"{name}.gif",
                 list(x[shown]),
                 scene.mesh.surface(),
                 scalars=colour[shown],
-                fps=1.0 / (scene.dt * stride),
+                fps=fps,
                 window_size=(720, 405),
                 ground_height=0.0,
             )
@@ -625,8 +717,10 @@ def plot_curves(
     return path
 
 
-def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method: str) -> None:
-    """The flags both training scripts take; `defaults` is the script's `Settings()`."""
+def common_parser(doc: str, defaults: RunSettings, method: str) -> argparse.ArgumentParser:
+    """The flags both training scripts take (their `dest` is the `RunSettings` field they set);
+    `defaults` is the script's `Settings()`."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument
     add("--creature", default=defaults.creature, help="a shipped creature")
     add("--num-envs", type=int, default=defaults.num_envs, help="creatures simulated as one batch")
@@ -638,6 +732,7 @@ def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method:
     add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
     add(
         "--compile",
+        dest="solver_compile",
         action="store_true",
         help="compiled physics evaluations: faster env steps after 15 s to a minute of compiling",
     )
@@ -647,11 +742,33 @@ def add_common_arguments(parser: argparse.ArgumentParser, defaults: Any, method:
         choices=["implicit_euler", "leapfrog"],
         help="the env's physics (leapfrog: explicit substeps with viscosity, fast with --compile)",
     )
+    add("--learning-rate", type=float, default=defaults.learning_rate, help="the optimizer's step size")
     add("--out", type=Path, default=Path("out") / f"train_{method}", help="output folder")
     add("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     add("--threads", type=int, default=1, help="torch intra-op threads")
     add("--no-render", action="store_true", help="no GIF")
     add("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def script_main(
+    argv: list[str] | None,
+    parser: argparse.ArgumentParser,
+    settings_type: type[RunSettings],
+    train: Callable[..., list[CurvePoint]],
+    outputs: Callable[..., list[Path]],
+    method: str,
+) -> int:
+    """Parse the flags into `settings_type` (field by field; fields without a flag keep their
+    defaults), train, write the outputs and print the outcome; returns 0."""
+    args = parser.parse_args(argv)
+    check_integer(args.threads, "threads", 1)
+    flags = vars(args)
+    settings = settings_type(**{f.name: flags[f.name] for f in fields(settings_type) if f.name in flags})
+    torch.set_num_threads(args.threads)
+    curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
+    print_outcome(method, outputs(settings, args.out, curve, render=not args.no_render), curve)
+    return 0
 
 
 def print_outcome(method: str, written: Sequence[Path], curve: Sequence[CurvePoint]) -> None:
@@ -673,7 +790,7 @@ def random_baseline(task: Task, episodes: int, seed: int = 0) -> Evaluation:
 
 
 def suggested_gait_controller(task: Task) -> Controller:
-    """The creature's suggested open-loop gait (`Creature.gait_action`, what walk_NAME.py uses, without
+    """The creature's suggested open-loop gait (`Creature.gait_action`, what walk.py uses, without
     its ramp-in) as a controller: a reference for the trained ones."""
     from energysim.creatures import load_creature
 
@@ -743,7 +860,7 @@ def main(argv: list[str] | None = None) -> int:
         "distance: of the centre of mass per episode. Wall time: training only, one thread, on a shared "
         "machine (noisy). The random policy draws uniform actions (the expected return of its control "
         f"cost alone is {expected_random_ctrl_return(task):+.3f}); the suggested gait is the creature's "
-        "open-loop sine of walk_NAME.py, without its ramp-in.\n\n"
+        "open-loop sine of walk.py, without its ramp-in.\n\n"
     )
     text = header + comparison_table(rows)
     atomic_write(args.out / "training.md", lambda temporary: temporary.write_text(text))

@@ -1,6 +1,6 @@
 """Benchmark the walking creatures: time per step, real-time factor, distance, and the error beside them.
 
-Each creature walks its default gait (`walk_NAME.SPEC`) at its default h from rest for `--seconds`; the
+Each creature walks its default gait (`walk.SPECS[name]`) at its default h from rest for `--seconds`; the
 same run is repeated at a 10× tighter solver tolerance as the reference, and the error is the distance
 between the two final centres of mass (what the looser tolerance costs in where the creature ends up).
 Timing is the wall time of each `es.step` call. The real-time factor is simulated time over the summed

@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
-from _common import write_csv
+from _bench import write_csv
 
 import energysim as es
 from energysim.fem.kinematics import deformation_gradient

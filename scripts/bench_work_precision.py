@@ -11,7 +11,7 @@ step h and velocity-residual tolerance of a grid, float64:
   falling at 1 m/s (`bench_step.landing_start`, placed for h = 1/60 s: it lands at t ≈ 0.06 s) and
   thrown sideways at `SLIDE_SPEED`, so that it lands, slides and is stopped by friction;
 - quadruped: the shipped quadruped (888 tets) walking its open-loop gait from rest
-  (`_locomotion.build_scene`, `default_gait`, `initial_state`; `walk_quadruped.SPEC`).
+  (`_locomotion.build_scene`, `default_gait`, `initial_state`; `walk.SPECS["quadruped"]`).
 
 Errors compare vertex positions at the times every run shares (multiples of the least common multiple
 of the time steps, 1/12 s for the default grid; nothing is interpolated):

@@ -160,17 +160,7 @@ def check(rollout: Rollout) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point; returns 0 when the run passes its check."""
-    return script_main(
-        argv,
-        __doc__,
-        NAME,
-        seconds=2.0,
-        resolution=4,
-        build_scene=build_scene,
-        run=run,
-        measure=measure,
-        check=check,
-    )
+    return script_main(argv, sys.modules[__name__], seconds=2.0, resolution=4)
 
 
 if __name__ == "__main__":

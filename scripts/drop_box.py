@@ -148,17 +148,7 @@ def check(rollout: Rollout) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point; returns 0 when the run passes its check."""
-    return script_main(
-        argv,
-        __doc__,
-        NAME,
-        seconds=1.0,
-        resolution=6,
-        build_scene=build_scene,
-        run=run,
-        measure=measure,
-        check=check,
-    )
+    return script_main(argv, sys.modules[__name__], seconds=1.0, resolution=6)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ passive elements) and ``fibre`` (unit rest fibre, d components)) and ``NAME.json
 material, muscle and open-loop gait), both atomically. `energysim.creatures.load_creature` reads them.
 
 Gaits are a(t)_j = amplitude · sin(2π f t + φ_j) per actuator j; the numbers below are the defaults of the
-walking scripts (``scripts/walk_NAME.py``, which add the ground, friction and a ramp-in), tried there.
+walking scripts (``scripts/walk.py``, which adds the ground, friction and a ramp-in), tried there.
 
 What must hold (`check`): every creature loads back with the arrays it was built from, has no degenerate or
 inverted element, unit fibres, every actuator 0..a−1 drives at least one element, and its lowest vertex is at
@@ -142,9 +142,9 @@ def quadruped() -> VoxelDesign:
         fibre[x0 : x0 + 2, 0:3, z0 : z0 + 2] = Y
     names = [f"{leg}_{half}" for leg in legs for half in ("front", "back")]
     # front legs together, back legs a quarter period behind them; a leg's back half opposite its front
-    # half. On a μ = 0.8 ground (scripts/walk_quadruped.py) this went forward at 3 Hz, but swayed back
-    # by a tenth of its length in every stride; at 4 Hz it went faster (1.5 body lengths in 2 s, within
-    # 10 % of that at h = 1/120 s) and swayed back a fifth as much. A trot (diagonal legs
+    # half. On a μ = 0.8 ground (scripts/walk.py --creature quadruped) this went forward at 3 Hz, but
+    # swayed back by a tenth of its length in every stride; at 4 Hz it went faster (1.5 body lengths in
+    # 2 s, within 10 % of that at h = 1/120 s) and swayed back a fifth as much. A trot (diagonal legs
     # together) and the back legs leading went backwards
     leg_phase = [0.0, 0.0, -math.pi / 2, -math.pi / 2]
     phases = [leg_phase[leg] + math.pi * half for leg in range(4) for half in (0, 1)]
@@ -246,8 +246,8 @@ def walker2d() -> VoxelDesign:
         fibre[x0 : x0 + 4, 0:6] = Y[:2]
     names = [f"{leg}_leg_{half}" for leg in legs for half in ("front", "back")]
     # the back leg a quarter period behind the front one, a leg's halves in opposition, at 3 Hz: on a
-    # μ = 0.8 ground (scripts/walk_walker2d.py) it walked forward at h = 1/60 and 1/120 s alike. The
-    # back leg ahead walked forward at 2 Hz but rocked back by half its length in a stride, and
+    # μ = 0.8 ground (scripts/walk.py --creature walker2d) it walked forward at h = 1/60 and 1/120 s
+    # alike. The back leg ahead walked forward at 2 Hz but rocked back by half its length in a stride, and
     # backwards at 3 Hz; faster gaits changed direction with the time step
     phases = [-math.pi / 2 * leg + math.pi * half for leg in range(2) for half in (0, 1)]
     description = (

@@ -28,7 +28,7 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,23 +36,21 @@ import numpy as np
 import torch
 from _training import (
     CHECKPOINT_NAME,
-    CURVE_NAME,
     CurvePoint,
     Evaluation,
-    Task,
-    add_common_arguments,
+    RunSettings,
     check_integer,
     check_number,
     checkpoint_settings,
+    common_parser,
     evaluate,
-    load_checkpoint,
+    load_run,
+    log_evaluation,
     make_vec_env,
     plot_curves,
-    print_outcome,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-    write_curve,
+    progress_bar,
+    script_main,
+    timed_evaluation,
     write_policy_outputs,
 )
 from torch import Tensor, nn
@@ -132,47 +130,22 @@ class GaitPolicy(nn.Module):
 
 
 @dataclass(frozen=True)
-class Settings:
+class Settings(RunSettings):
     """One gradient training run (the command line's flags; module docstring)."""
 
-    creature: str = "worm"
-    num_envs: int = 1
-    total_steps: int = 3000
     window: int = 20
-    episode_steps: int = 120
-    learning_rate: float = 0.05
     frequency: float | None = None
     learn_frequency: bool = False
     init_amplitude: float = 0.5
     hidden: int = 0
-    seed: int = 0
-    eval_every: int = 600
-    eval_episodes: int = 2
-    solver_tol: float = 1e-4
-    solver_compile: bool = False
-    integrator: str = "implicit_euler"
 
     def __post_init__(self) -> None:
-        Task(
-            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
-        )  # checks those
-        check_integer(self.num_envs, "num_envs", 1)
-        check_integer(self.total_steps, "total_steps", 0)
+        super().__post_init__()
         check_integer(self.window, "window", 1)
-        check_number(self.learning_rate, "learning_rate", 0.0, strict=True)
         if self.frequency is not None:
             check_number(self.frequency, "frequency", 0.0, strict=True)
         check_number(self.init_amplitude, "init_amplitude", 0.0)
         check_integer(self.hidden, "hidden", 0)
-        check_integer(self.seed, "seed", 0)
-        check_integer(self.eval_every, "eval_every", 1)
-        check_integer(self.eval_episodes, "eval_episodes", 1)
-
-    @property
-    def task(self) -> Task:
-        return Task(
-            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
-        )
 
 
 def window_return(
@@ -257,23 +230,14 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     state = episode_start(simulation, settings.seed, episode, settings.num_envs)
     activation = torch.zeros(settings.num_envs, simulation.num_actuators, dtype=state.dtype)
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
-        policy.load_state_dict(saved["policy"])
-        optimizer.load_state_dict(saved["optimizer"])
-        set_rng_state(saved["rng"])
-        curve = [CurvePoint(**row) for row in saved["curve"]]
+        saved, curve = load_run(out, fixed, policy, optimizer)
         env_steps, updates, wall = saved["env_steps"], saved["updates"], saved["wall_seconds"]
         episode, step_in_episode, failures = saved["episode"], saved["step_in_episode"], saved["failures"]
         state, activation = saved["state"], saved["activation"]
 
     def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
-        curve.append(CurvePoint.of(METHOD, env_steps, updates, wall, result, seconds))
-        payload = {
-            "settings": fixed,
-            "policy": policy.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "rng": rng_state(),
-            "curve": [asdict(point) for point in curve],
+        point = CurvePoint.of(METHOD, env_steps, updates, wall, result, seconds)
+        counters = {
             "env_steps": env_steps,
             "updates": updates,
             "wall_seconds": wall,
@@ -283,30 +247,12 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
             "state": state,
             "activation": activation,
         }
-        save_checkpoint(out / CHECKPOINT_NAME, payload)
-        write_curve(out / CURVE_NAME, curve)
-        if progress:
-            tqdm.write(
-                f"{METHOD}: {env_steps} env steps, {wall:.0f} s: eval return {result.mean_return:+.3f} "
-                f"± {result.stderr_return:.3f}, distance {100 * result.mean_distance:+.2f} cm"
-            )
-
-    def run_evaluation(record: bool = False) -> tuple[Evaluation, float]:
-        start = time.perf_counter()
-        result = evaluate(evaluation_env, controller(policy), record=record)
-        return result, time.perf_counter() - start
+        log_evaluation(out, curve, point, (fixed, policy, optimizer, counters), progress)
 
     if not curve:
-        checkpoint_and_log(*run_evaluation())
+        checkpoint_and_log(*timed_evaluation(evaluation_env, controller(policy)))
     next_evaluation = curve[-1].env_steps + settings.eval_every
-    bar = tqdm(
-        total=settings.total_steps,
-        initial=min(env_steps, settings.total_steps),
-        desc=METHOD,
-        unit="step",
-        disable=not progress,
-        leave=False,
-    )
+    bar = progress_bar(METHOD, settings, env_steps, progress)
     while env_steps < settings.total_steps:
         steps = min(settings.window, task.episode_steps - step_in_episode)
         start = time.perf_counter()
@@ -334,7 +280,7 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
         wall += time.perf_counter() - start
         bar.update(steps * settings.num_envs)
         if env_steps >= next_evaluation or env_steps >= settings.total_steps:
-            checkpoint_and_log(*run_evaluation())
+            checkpoint_and_log(*timed_evaluation(evaluation_env, controller(policy)))
             next_evaluation = env_steps + settings.eval_every
     bar.close()
     return curve
@@ -361,46 +307,20 @@ def outputs(settings: Settings, out: Path, curve: list[CurvePoint], render: bool
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    defaults = Settings()
+    """The shared training flags and this method's own."""
+    parser = common_parser(__doc__, Settings(), METHOD)
     add = parser.add_argument
-    add_common_arguments(parser, defaults, "gradient")
-    add("--window", type=int, default=defaults.window, help="env steps per truncated-backpropagation window")
-    add("--learning-rate", type=float, default=defaults.learning_rate, help="Adam's step size")
+    add("--window", type=int, default=Settings.window, help="env steps per truncated-backpropagation window")
     add("--frequency", type=float, default=None, help="gait frequency in Hz (default: the creature's)")
     add("--learn-frequency", action="store_true", help="train the frequency too")
-    add("--init-amplitude", type=float, default=defaults.init_amplitude, help="initial gait amplitude")
-    add("--hidden", type=int, default=defaults.hidden, help="MLP width on the observation; 0: none")
+    add("--init-amplitude", type=float, default=Settings.init_amplitude, help="initial gait amplitude")
+    add("--hidden", type=int, default=Settings.hidden, help="MLP width on the observation; 0: none")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = make_parser().parse_args(argv)
-    check_integer(args.threads, "threads", 1)
-    settings = Settings(
-        creature=args.creature,
-        num_envs=args.num_envs,
-        total_steps=args.total_steps,
-        window=args.window,
-        episode_steps=args.episode_steps,
-        learning_rate=args.learning_rate,
-        frequency=args.frequency,
-        learn_frequency=args.learn_frequency,
-        init_amplitude=args.init_amplitude,
-        hidden=args.hidden,
-        seed=args.seed,
-        eval_every=args.eval_every,
-        eval_episodes=args.eval_episodes,
-        solver_tol=args.solver_tol,
-        solver_compile=args.compile,
-        integrator=args.integrator,
-    )
-    torch.set_num_threads(args.threads)
-    curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
-    print_outcome(METHOD, outputs(settings, args.out, curve, render=not args.no_render), curve)
-    return 0
+    """Command line entry point (module docstring); returns 0."""
+    return script_main(argv, make_parser(), Settings, train, outputs, METHOD)
 
 
 if __name__ == "__main__":

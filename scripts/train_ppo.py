@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,43 +34,39 @@ import numpy as np
 import torch
 from _training import (
     CHECKPOINT_NAME,
-    CURVE_NAME,
     CreatureVecEnv,
     CurvePoint,
     Evaluation,
-    Task,
-    add_common_arguments,
+    RunSettings,
     check_integer,
     check_number,
     checkpoint_settings,
+    common_parser,
     evaluate,
-    load_checkpoint,
+    load_run,
+    log_evaluation,
     make_vec_env,
     plot_curves,
-    print_outcome,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-    write_curve,
+    progress_bar,
+    script_main,
+    timed_evaluation,
     write_policy_outputs,
 )
-from tqdm import tqdm
 
 METHOD = "ppo"
 
 
 @dataclass(frozen=True)
-class Settings:
+class Settings(RunSettings):
     """One PPO training run (the command line's flags; module docstring)."""
 
-    creature: str = "worm"
     num_envs: int = 8
     total_steps: int = 3840
-    episode_steps: int = 120
+    learning_rate: float = 3e-4
+    eval_every: int = 960
     n_steps: int = 60
     batch_size: int = 120
     n_epochs: int = 10
-    learning_rate: float = 3e-4
     gamma: float = 0.98
     gae_lambda: float = 0.95
     clip_range: float = 0.2
@@ -79,23 +75,12 @@ class Settings:
     hidden: int = 64
     clock: bool = True
     action_tau: float = 0.1
-    seed: int = 0
-    eval_every: int = 960
-    eval_episodes: int = 2
-    solver_tol: float = 1e-4
-    solver_compile: bool = False
-    integrator: str = "implicit_euler"
 
     def __post_init__(self) -> None:
-        Task(
-            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
-        )  # checks those
-        check_integer(self.num_envs, "num_envs", 1)
-        check_integer(self.total_steps, "total_steps", 0)
+        super().__post_init__()
         check_integer(self.n_steps, "n_steps", 1)
         check_integer(self.batch_size, "batch_size", 2)
         check_integer(self.n_epochs, "n_epochs", 1)
-        check_number(self.learning_rate, "learning_rate", 0.0, strict=True)
         for name in ("gamma", "gae_lambda"):
             value = check_number(getattr(self, name), name, 0.0)
             if value > 1:
@@ -105,9 +90,6 @@ class Settings:
         check_number(self.log_std_init, "log_std_init")
         check_integer(self.hidden, "hidden", 1)
         check_number(self.action_tau, "action_tau", 0.0)
-        check_integer(self.seed, "seed", 0)
-        check_integer(self.eval_every, "eval_every", 1)
-        check_integer(self.eval_episodes, "eval_episodes", 1)
         rollout = self.num_envs * self.n_steps
         if self.eval_every % rollout:
             raise ValueError(
@@ -118,12 +100,6 @@ class Settings:
             raise ValueError(
                 f"batch_size must be at most num_envs × n_steps = {rollout}, got {self.batch_size}"
             )
-
-    @property
-    def task(self) -> Task:
-        return Task(
-            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
-        )
 
 
 def vec_env(settings: Settings, num_envs: int) -> CreatureVecEnv:
@@ -193,54 +169,19 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
     curve: list[CurvePoint] = []
     wall = 0.0
     if resume:
-        saved = load_checkpoint(out / CHECKPOINT_NAME, fixed)
-        model.policy.load_state_dict(saved["policy"])
-        model.policy.optimizer.load_state_dict(saved["optimizer"])
-        set_rng_state(saved["rng"])
+        saved, curve = load_run(out, fixed, model.policy, model.policy.optimizer)
         model.num_timesteps, model._n_updates = saved["env_steps"], saved["updates"]
-        curve = [CurvePoint(**row) for row in saved["curve"]]
         wall = saved["wall_seconds"]
 
     def checkpoint_and_log(result: Evaluation, seconds: float) -> None:
-        curve.append(
-            CurvePoint.of(
-                METHOD, model.num_timesteps, model._n_updates // settings.n_epochs, wall, result, seconds
-            )
-        )
-        payload = {
-            "settings": fixed,
-            "policy": model.policy.state_dict(),
-            "optimizer": model.policy.optimizer.state_dict(),
-            "rng": rng_state(),
-            "curve": [asdict(point) for point in curve],
-            "env_steps": model.num_timesteps,
-            "updates": model._n_updates,
-            "wall_seconds": wall,
-        }
-        save_checkpoint(out / CHECKPOINT_NAME, payload)
-        write_curve(out / CURVE_NAME, curve)
-        if progress:
-            tqdm.write(
-                f"{METHOD}: {model.num_timesteps} env steps, {wall:.0f} s: eval return "
-                f"{result.mean_return:+.3f} ± {result.stderr_return:.3f}, distance "
-                f"{100 * result.mean_distance:+.2f} cm"
-            )
-
-    def run_evaluation() -> tuple[Evaluation, float]:
-        start = time.perf_counter()
-        result = evaluate(evaluation_env, controller(model))
-        return result, time.perf_counter() - start
+        updates = model._n_updates // settings.n_epochs
+        point = CurvePoint.of(METHOD, model.num_timesteps, updates, wall, result, seconds)
+        counters = {"env_steps": model.num_timesteps, "updates": model._n_updates, "wall_seconds": wall}
+        log_evaluation(out, curve, point, (fixed, model.policy, model.policy.optimizer, counters), progress)
 
     if not curve:
-        checkpoint_and_log(*run_evaluation())
-    bar = tqdm(
-        total=settings.total_steps,
-        initial=min(model.num_timesteps, settings.total_steps),
-        desc=METHOD,
-        unit="step",
-        disable=not progress,
-        leave=False,
-    )
+        checkpoint_and_log(*timed_evaluation(evaluation_env, controller(model)))
+    bar = progress_bar(METHOD, settings, model.num_timesteps, progress)
 
     class Progress(BaseCallback):
         def _on_step(self) -> bool:
@@ -256,7 +197,7 @@ def train(settings: Settings, out: Path, *, resume: bool = False, progress: bool
         start = time.perf_counter()
         model.learn(steps, callback=Progress(), reset_num_timesteps=False)
         wall += time.perf_counter() - start
-        checkpoint_and_log(*run_evaluation())
+        checkpoint_and_log(*timed_evaluation(evaluation_env, controller(model)))
     bar.close()
     return curve
 
@@ -273,54 +214,24 @@ def outputs(settings: Settings, out: Path, curve: list[CurvePoint], render: bool
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    defaults = Settings()
+    """The shared training flags and this method's own."""
+    parser = common_parser(__doc__, Settings(), METHOD)
     add = parser.add_argument
-    add_common_arguments(parser, defaults, "ppo")
-    add("--n-steps", type=int, default=defaults.n_steps, help="env steps per entry between PPO updates")
-    add("--batch-size", type=int, default=defaults.batch_size, help="PPO minibatch size")
-    add("--n-epochs", type=int, default=defaults.n_epochs, help="PPO epochs per update")
-    add("--learning-rate", type=float, default=defaults.learning_rate)
-    add("--gamma", type=float, default=defaults.gamma, help="discount")
-    add("--log-std-init", type=float, default=defaults.log_std_init, help="initial log std of the policy")
-    add("--hidden", type=int, default=defaults.hidden, help="width of the two hidden layers")
-    add("--no-clock", action="store_true", help="no clock features in the observation")
-    add(
-        "--action-tau", type=float, default=defaults.action_tau, help="activation time constant in s; 0: none"
-    )
+    add("--n-steps", type=int, default=Settings.n_steps, help="env steps per entry between PPO updates")
+    add("--batch-size", type=int, default=Settings.batch_size, help="PPO minibatch size")
+    add("--n-epochs", type=int, default=Settings.n_epochs, help="PPO epochs per update")
+    add("--gamma", type=float, default=Settings.gamma, help="discount")
+    add("--log-std-init", type=float, default=Settings.log_std_init, help="initial log std of the policy")
+    add("--hidden", type=int, default=Settings.hidden, help="width of the two hidden layers")
+    add("--no-clock", dest="clock", action="store_false", help="no clock features in the observation")
+    tau_help = "activation time constant in s; 0: none"
+    add("--action-tau", type=float, default=Settings.action_tau, help=tau_help)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = make_parser().parse_args(argv)
-    check_integer(args.threads, "threads", 1)
-    settings = Settings(
-        creature=args.creature,
-        num_envs=args.num_envs,
-        total_steps=args.total_steps,
-        episode_steps=args.episode_steps,
-        n_steps=args.n_steps,
-        batch_size=args.batch_size,
-        n_epochs=args.n_epochs,
-        learning_rate=args.learning_rate,
-        gamma=args.gamma,
-        log_std_init=args.log_std_init,
-        hidden=args.hidden,
-        clock=not args.no_clock,
-        action_tau=args.action_tau,
-        seed=args.seed,
-        eval_every=args.eval_every,
-        eval_episodes=args.eval_episodes,
-        solver_tol=args.solver_tol,
-        solver_compile=args.compile,
-        integrator=args.integrator,
-    )
-    torch.set_num_threads(args.threads)
-    curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
-    print_outcome(METHOD, outputs(settings, args.out, curve, render=not args.no_render), curve)
-    return 0
+    """Command line entry point (module docstring); returns 0."""
+    return script_main(argv, make_parser(), Settings, train, outputs, METHOD)
 
 
 if __name__ == "__main__":

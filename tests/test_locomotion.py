@@ -11,7 +11,6 @@ import os
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
-from types import ModuleType
 
 import meshio
 import numpy as np
@@ -32,8 +31,11 @@ FULL = os.environ.get("ENERGYSIM_HEAVY") == "1"
 SHORT_SECONDS = dict.fromkeys(CREATURES, 0.5)
 
 
-def script(name: str) -> ModuleType:
-    return importlib.import_module(f"walk_{name}")
+walk_script = importlib.import_module("walk")
+
+
+def spec_of(name: str):
+    return walk_script.SPECS[name]
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -47,7 +49,7 @@ def walks() -> dict[tuple[str, float], tuple]:
 
 def walk(walks: dict, name: str, seconds: float) -> tuple:
     if (name, seconds) not in walks:
-        spec = script(name).SPEC
+        spec = spec_of(name)
         creature = load_creature(name)
         scene = locomotion.build_scene(creature, spec.dt, spec.friction, "newton-cg", spec.tol)
         gait = locomotion.default_gait(spec, creature)
@@ -56,7 +58,7 @@ def walk(walks: dict, name: str, seconds: float) -> tuple:
 
 
 def check(name: str, scene, gait, rollout) -> None:
-    spec = script(name).SPEC
+    spec = spec_of(name)
     length = locomotion.body_length(scene)
     locomotion.check(rollout, length, spec.min_speed, spec.max_backslide, settle=gait.ramp)
 
@@ -88,14 +90,14 @@ def test_worm_and_quadruped_walk_half_a_body_length_in_5_s(walks, name: str) -> 
     # sliding backwards: the centre of mass never falls more than the tolerance behind the farthest
     # point it has reached, so it never ends up behind the start either
     com = rollout.history["com"][:, 0]
-    assert float((com - com[0]).min()) >= -script(name).SPEC.max_backslide * locomotion.body_length(scene)
+    assert float((com - com[0]).min()) >= -spec_of(name).max_backslide * locomotion.body_length(scene)
 
 
 def test_check_has_teeth(walks) -> None:
     # the quadruped's ramp ends at 0.25 s, so the short walk is also held to the script's speed
     scene, gait, rollout = walk(walks, "quadruped", SHORT_SECONDS["quadruped"])
     length = locomotion.body_length(scene)
-    spec = script("quadruped").SPEC
+    spec = spec_of("quadruped")
     locomotion.check(rollout, length, spec.min_speed, spec.max_backslide, settle=gait.ramp)
 
     def with_history(**changes: torch.Tensor):
@@ -126,7 +128,7 @@ def test_check_has_teeth(walks) -> None:
 @pytest.mark.parametrize("name", CREATURES)
 def test_scripts_default_gaits_are_the_shipped_ones(name: str) -> None:
     creature = load_creature(name)
-    spec = script(name).SPEC
+    spec = spec_of(name)
     phases = np.array(spec.phases(spec.phase_lag))
     difference = np.angle(np.exp(1j * (phases - np.array(creature.gait_phases))))
     np.testing.assert_allclose(difference, 0.0, atol=1e-9)
@@ -164,9 +166,8 @@ def test_refined_creature_splits_every_voxel() -> None:
 def test_main_writes_vtk_frames_pictures_and_checks(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    walk_crawler2d = script("crawler2d")
-    argv = ["--seconds", "0.2", "--frames-every", "3", "--window-size", "160", "96", "--quiet"]
-    assert walk_crawler2d.main([*argv, "--out", str(tmp_path)]) == 0
+    argv = ["--creature", "crawler2d", "--seconds", "0.2", "--frames-every", "3", "--quiet"]
+    assert walk_script.main([*argv, "--window-size", "160", "96", "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
     assert "check passed" in printed and "travelled +" in printed and "x real time" in printed
     # 12 steps saved at 0, 3, ..., 12
@@ -174,7 +175,7 @@ def test_main_writes_vtk_frames_pictures_and_checks(
     times = [float(d.get("timestep")) for d in sets]
     np.testing.assert_allclose(times, [k / 60 for k in range(0, 13, 3)], rtol=0, atol=1e-12)
     creature = load_creature("crawler2d")
-    spec = walk_crawler2d.SPEC
+    spec = spec_of("crawler2d")
     gait = locomotion.default_gait(spec, creature)
     actuated = creature.actuators >= 0
     for time, data_set in zip(times, sets, strict=True):

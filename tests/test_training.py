@@ -255,7 +255,7 @@ def test_compiled_physics_is_passed_on_and_may_change_on_resume() -> None:
         "ppo", dataclasses.replace(eager, seed=1)
     )
     parsed = train_ppo.make_parser().parse_args(["--compile"])
-    assert parsed.compile and not train_ppo.make_parser().parse_args([]).compile
+    assert parsed.solver_compile and not train_ppo.make_parser().parse_args([]).solver_compile
 
 
 def _random_policy_expected_return(task) -> float:
