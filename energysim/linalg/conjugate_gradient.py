@@ -85,8 +85,8 @@ class ConjugateGradient:
         """
         solution = torch.zeros_like(rhs)
         remainder = rhs.clone()
-        z = precondition(remainder)
-        search = z.clone()
+        search = precondition(remainder).clone()
+        z = search
         rz = batched_dot(remainder, z)
         target_squared = tolerance**2 * batched_dot(rhs, rhs)
         running = batched_dot(remainder, remainder) > target_squared
@@ -118,12 +118,18 @@ class ConjugateGradient:
                 running = running & (velocity > scaled_target)
             if not running.any():
                 break
-            z = precondition(remainder)
+            z = _fresh(precondition(remainder), remainder)
             rz_new = batched_dot(remainder, z)
             beta = (rz_new / rz.where(rz != 0, torch.ones_like(rz))) * running
             search = z.addcmul_(search, beta[:, None, None])
             rz = rz_new
         return CGResult(solution, iterations, ~running & ~indefinite, indefinite)
+
+
+def _fresh(z: Tensor, remainder: Tensor) -> Tensor:
+    # the search direction is updated in place in z: a preconditioner that hands back its input
+    # (or a view of it) must not let that update reach the residual
+    return z.clone() if z.data_ptr() == remainder.data_ptr() else z
 
 
 def block_jacobi_preconditioner(operator: HessianOperator, like: Tensor) -> Tensor:
