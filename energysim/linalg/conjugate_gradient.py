@@ -95,9 +95,7 @@ class ConjugateGradient:
         indefinite = torch.zeros_like(running)
         first = True
         iterations = 0
-        for _ in range(self.max_iter):
-            if not running.any():
-                break
+        for _ in range(self.max_iter if bool(running.any()) else 0):
             iterations += 1
             product = matvec(search)
             curvature = batched_dot(search, product)
