@@ -20,8 +20,8 @@ from energysim.linalg.block_tridiagonal import (
     to_levels,
     vertex_levels,
 )
+from energysim.linalg.linear_solve import INDEFINITE_SHIFTS, choose
 from energysim.objective.objective import Objective
-from energysim.solvers.newton_cg import INDEFINITE_SHIFTS
 
 RTOL = 1e-10
 
@@ -200,9 +200,9 @@ def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> Non
     for batch, method in ((1, "banded"), (16, "levels")):
         objective, x = _objective(scene, state[:batch], action[:batch])
         groups = [elements for elements, _ in objective.hessian(x).blocks]
-        assert solver._method_for(groups, x) == method
+        assert choose(groups, x).method == method
         # a compiled Hessian is assembled in band storage: the band path for any batch
-        assert solver._method_for(groups, x, compiled=True) == "banded"
+        assert choose(groups, x, compiled_max_dofs=5000).method == "banded"
     # LAPACK's band routines are CPU only: elsewhere one worm is factorised dense
     layout = solver._layout(groups, x[:1])
     for compiled in (False, True):
@@ -257,7 +257,10 @@ def test_backward_through_the_band_solve_equals_the_dense_one(monkeypatch: pytes
         return start.grad
 
     band = gradient()
-    monkeypatch.setattr(sys.modules["energysim.integrators.adjoint"], "prefer_band", lambda *args: False)
+    # the backward's choice alone: the forward (`step`) keeps its band solve
+    adjoint = sys.modules["energysim.integrators.adjoint"]
+    original = adjoint.choose
+    monkeypatch.setattr(adjoint, "choose", lambda *args, **kw: original(*args, **kw, method="dense"))
     dense = gradient()
     assert float((band - dense).abs().max()) < 1e-9 * float(dense.abs().max())
 

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.solvers.base import NOISE_ALLOWANCE, energy_noise
+from energysim.solvers.line_search import NOISE_ALLOWANCE, energy_noise
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 if str(SCRIPTS) not in sys.path:
@@ -134,7 +134,7 @@ def test_backtracking_interpolates_a_far_too_long_step_down_to_the_minimum() -> 
     # (x = −0.56) after 6 refusals; the quadratic through E(0), E'(0), E(t) has its minimiser at
     # t = 0.01 exactly, reached in two safeguarded reductions (t/10 each)
     from energysim.objective.objective import Objective
-    from energysim.solvers.base import backtracking_line_search
+    from energysim.solvers.line_search import backtracking_line_search
 
     x = torch.ones(1, 1, 1, dtype=torch.float64)
     objective = Objective([_Bowl()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))

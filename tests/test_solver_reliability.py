@@ -19,7 +19,7 @@ from conftest import rigid_alignment_error
 
 import energysim as es
 from energysim.objective.objective import Objective
-from energysim.solvers.base import line_step
+from energysim.solvers.line_search import line_step
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

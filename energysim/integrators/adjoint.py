@@ -7,9 +7,10 @@ masses, gravity):
 
     H u = ∂L/∂x*,     dL/dθ = −uᵀ ∂g/∂θ,     H = ∇²ₓE(x*), the true (unprojected) Hessian.
 
-Backward is one linear solve (CG on Hessian-vector products, pinned DOFs eliminated) and one
-vector-Jacobian product; the optimizer's iterations are never recorded, so a step keeps only
-its inputs and x* for backward, whatever solver ran the forward.
+Backward is one linear solve (pinned DOFs eliminated), the one the forward's Newton direction
+takes for the same system (`energysim.linalg.linear_solve`), and one vector-Jacobian product;
+the optimizer's iterations are never recorded, so a step keeps only its inputs and x* for backward,
+whatever solver ran the forward.
 """
 
 from __future__ import annotations
@@ -22,12 +23,11 @@ from torch import Tensor
 
 from energysim.energies.base import EnergyTerm
 from energysim.energies.inertia import Inertia
-from energysim.linalg.banded import band_cholesky_solve, prefer_band
-from energysim.linalg.block_tridiagonal import level_solve, prefer_levels
+from energysim.linalg.conjugate_gradient import ConjugateGradient, block_jacobi
+from energysim.linalg.linear_solve import choose, eager_system
 from energysim.objective.derivatives import HessianOperator
 from energysim.objective.objective import Objective
 from energysim.solvers.base import ConvergenceError, ConvergenceWarning, SolverResult
-from energysim.solvers.newton_cg import block_jacobi_preconditioner
 
 
 class GradientError(RuntimeError):
@@ -39,86 +39,42 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(dim=(-1, -2))
 
 
-def conjugate_gradient(
-    operator: HessianOperator,
-    rhs: Tensor,
-    precondition: Callable[[Tensor], Tensor],
-    *,
-    rtol: float = 1e-10,
-    max_iter: int = 10000,
-) -> tuple[Tensor, int]:
-    """Solve H u = rhs for an SPD H, per batch entry, to ‖r‖ ≤ rtol ‖rhs‖.
-
-    Raises:
-        GradientError: on non-positive curvature (H is not positive definite) or no convergence.
-    """
-    solution = torch.zeros_like(rhs)
-    remainder = rhs.clone()
-    z = precondition(remainder)
-    search = z.clone()
-    rz = _dot(remainder, z)
-    target = rtol**2 * _dot(rhs, rhs)
-    running = _dot(remainder, remainder) > target
-    for iteration in range(1, max_iter + 1):
-        if not running.any():
-            return solution, iteration - 1
-        product = operator.matvec(search)
-        curvature = _dot(search, product)
-        if (running & (curvature <= 0)).any():
-            raise GradientError(
-                "the step's Hessian is not positive definite at its solution, so x* is not a strict "
-                "minimum and the implicit gradient does not exist (buckling, or a free rigid mode in "
-                "a static solve)"
-            )
-        alpha = (rz / curvature.where(running, torch.ones_like(curvature))) * running
-        solution.addcmul_(search, alpha[:, None, None])
-        remainder.addcmul_(product, alpha[:, None, None], value=-1.0)
-        running = running & (_dot(remainder, remainder) > target)
-        z = precondition(remainder)
-        rz_new = _dot(remainder, z)
-        beta = (rz_new / rz.where(rz != 0, torch.ones_like(rz))) * running
-        search = z.addcmul_(search, beta[:, None, None])
-        rz = rz_new
-    raise GradientError(f"the adjoint CG solve did not reach rtol {rtol:g} in {max_iter} iterations")
+NOT_POSITIVE_DEFINITE = (
+    "the step's Hessian is not positive definite at its solution, so x* is not a strict minimum and "
+    "the implicit gradient does not exist (buckling, or a free rigid mode in a static solve)"
+)
+# The most CG iterations of an adjoint solve.
+ADJOINT_MAX_CG_ITER = 10000
 
 
 def solve_adjoint(
     operator: HessianOperator, rhs: Tensor, x: Tensor, rtol: float, direct_max_dofs: int
 ) -> Tensor:
-    """u = H⁻¹ rhs at the step's solution: Cholesky for small systems (block-tridiagonal over vertex
-    levels or in band storage where that is cheaper, as `NewtonCG.direct` chooses), else block-Jacobi CG.
+    """u = H⁻¹ rhs (`[B, n, d]`) at the step's solution x, by the linear solve the forward step's
+    Newton direction takes (`energysim.linalg.linear_solve.choose`, with H assembled eagerly: a
+    Cholesky factorisation for systems of at most `direct_max_dofs` DOFs per entry), else
+    block-Jacobi CG to ‖r‖ ≤ `rtol`·‖rhs‖.
 
     Raises:
-        GradientError: H is not positive definite.
+        GradientError: H is not positive definite, or CG did not converge.
     """
-    not_definite = (
-        "the step's Hessian is not positive definite at its solution, so x* is not a strict "
-        "minimum and the implicit gradient does not exist"
+    plan = choose([elements for elements, _ in operator.blocks], x, max_dofs=direct_max_dofs)
+    system = eager_system(plan, operator, x)
+    if system is not None:
+        solution, solved = system.solve(rhs, torch.ones(x.shape[0], dtype=torch.bool, device=x.device))
+        if not bool(solved.all()):
+            raise GradientError(NOT_POSITIVE_DEFINITE)
+        return solution
+    cg = ConjugateGradient(max_iter=ADJOINT_MAX_CG_ITER).solve(
+        operator.matvec, rhs, block_jacobi(operator, x), rtol
     )
-    batch, n, dim = x.shape
-    small = n * dim <= direct_max_dofs
-    layout = operator.level_layout(x) if small and operator.blocks else None
-    if layout is not None and prefer_levels(layout, batch, n * dim):
-        levels = operator.level_blocks(x)
-        if levels is not None:
-            solution, positive_definite = level_solve(*levels, rhs)
-            if not bool(positive_definite.all()):
-                raise GradientError(not_definite)
-            return solution
-    dense = operator.dense(x) if small else None
-    if dense is not None and layout is not None and prefer_band(layout, batch, n * dim, x.device):
-        solution, positive_definite = band_cholesky_solve(dense, rhs.reshape(batch, -1), layout)
-        if not bool(positive_definite.all()):
-            raise GradientError(not_definite)
-        return solution.reshape(rhs.shape)
-    if dense is not None:
-        factor, info = torch.linalg.cholesky_ex(dense)
-        if bool((info != 0).any()):
-            raise GradientError(not_definite)
-        return torch.cholesky_solve(rhs.reshape(rhs.shape[0], -1, 1), factor).reshape(rhs.shape)
-    inverse = block_jacobi_preconditioner(operator, x)
-    solution, _ = conjugate_gradient(operator, rhs, lambda r: (inverse @ r[..., None])[..., 0], rtol=rtol)
-    return solution
+    if bool(cg.indefinite.any()):
+        raise GradientError(NOT_POSITIVE_DEFINITE)
+    if not bool(cg.converged.all()):
+        raise GradientError(
+            f"the adjoint CG solve did not reach rtol {rtol:g} in {ADJOINT_MAX_CG_ITER} iterations"
+        )
+    return cg.solution
 
 
 def step_terms(

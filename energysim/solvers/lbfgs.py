@@ -9,7 +9,9 @@ from torch import Tensor
 
 from energysim.objective.objective import Objective
 from energysim.solvers.arguments import require_integer
-from energysim.solvers.base import LBFGS_STALL_ITERATIONS, Solver, SolverResult, Stagnation, line_step
+from energysim.solvers.base import Solver, SolverResult
+from energysim.solvers.line_search import line_step
+from energysim.solvers.stagnation import LBFGS_STALL_ITERATIONS, Stagnation
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
