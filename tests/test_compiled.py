@@ -348,5 +348,5 @@ def test_kept_factorisations_hand_an_indefinite_hessian_to_the_shifted_solve():
     direction, solved = kept._compiled_direct(objective, -gradient, x, wanted)
     assert solved.tolist() == expected_solved.tolist() == [True, True]
     assert torch.equal(direction, expected)
-    ((_, factors),) = kept._factors.values()
+    ((_, factors),) = kept._factors._factors.values()
     assert factors == [None, None]
