@@ -10,7 +10,7 @@ Installed as the distribution ``torch-energysim``; imported as ``energysim``.
 __version__ = "0.1.0"
 
 from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereObstacle
-from energysim.creatures import CREATURES, Creature, load_creature
+from energysim.creatures import CREATURES, Creature, load_creature, resting_state
 from energysim.energies import (
     ActuatedSprings,
     DensityEnergy,
@@ -96,6 +96,7 @@ __all__ = [
     "Viewer",
     "load_creature",
     "load_mesh",
+    "resting_state",
     "solve_static",
     "stable_substeps",
     "step",

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
 import operator
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -10,6 +13,13 @@ from torch.utils.checkpoint import checkpoint
 
 from energysim.integrators.step import timestep
 from energysim.model.scene import Scene
+
+logger = logging.getLogger(__name__)
+
+# Without tqdm, `progress=True` logs about this many lines over a rollout (and always the last step).
+_LOG_LINES = 10
+
+ProgressCallback = Callable[[int, int], object]
 
 
 def _count(value: object, name: str, *, allow_none: bool = False) -> int | None:
@@ -33,6 +43,7 @@ def rollout(
     *,
     checkpoint_every: int = 0,
     grad_mode: str = "implicit",
+    progress: bool | ProgressCallback = False,
 ) -> Tensor:
     """Step `state` forward and return every state, shape `[T + 1, *state.shape]`.
 
@@ -47,6 +58,12 @@ def rollout(
         steps: T when `actions` is None.
         checkpoint_every: steps per checkpointed segment; 0 keeps every step's tensors.
         grad_mode: "implicit" or "unrolled" (see `energysim.integrators.step`).
+        progress: False: silent. True: a tqdm progress bar on stderr when tqdm is installed, else an
+            INFO line through `logging` about every tenth of the run and at the last step. A callable
+            `progress(step, total)` is called after each step with the number of steps done (1 … T) and
+            T; an exception it raises ends the rollout. Reporting reads only step counts, so the states,
+            gradients and checkpointing are the same with or without it; steps solved again during a
+            checkpointed backward are not reported again.
     """
     steps = _count(steps, "steps", allow_none=True)
     checkpoint_every = _count(checkpoint_every, "checkpoint_every")
@@ -60,13 +77,35 @@ def rollout(
         steps = actions.shape[0]
     if steps is None:
         raise ValueError("give `steps` (>= 0) or `actions`")
+    if not (isinstance(progress, bool) or callable(progress)):
+        raise TypeError(f"progress must be True, False or a callable progress(step, total), got {progress!r}")
+    with _reporter(progress, steps) as report:
+        return _run(scene, state, actions, steps, checkpoint_every, grad_mode, report)
+
+
+def _run(
+    scene: Scene,
+    state: Tensor,
+    actions: Tensor | None,
+    steps: int,
+    checkpoint_every: int,
+    grad_mode: str,
+    report: Callable[[int], None],
+) -> Tensor:
+    """The rollout proper, with `report(step)` called once per step done, in order."""
+    reported = 0
 
     def advance(current: Tensor, first: int, count: int, segment_actions: Tensor | None) -> list[Tensor]:
+        nonlocal reported
         out = []
         for k in range(count):
             action = None if segment_actions is None else segment_actions[k]
             current = timestep(scene, current, action, grad_mode=grad_mode)
             out.append(current)
+            # a checkpointed backward runs `advance` again for steps already reported
+            if first + k + 1 > reported:
+                reported = first + k + 1
+                report(reported)
         return out
 
     states = [state]
@@ -87,3 +126,26 @@ def rollout(
             states.extend(advance(states[-1], start, count, segment_actions))
         start += count
     return torch.stack(states)
+
+
+@contextmanager
+def _reporter(progress: bool | ProgressCallback, total: int) -> Iterator[Callable[[int], None]]:
+    """`report(step)` for `progress`, valid inside the block; a progress bar is closed on leaving it."""
+    if progress is False:
+        yield lambda step: None
+    elif progress is True:
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            every = max(1, -(-total // _LOG_LINES))
+
+            def log(step: int) -> None:
+                if step % every == 0 or step == total:
+                    logger.info("rollout: step %d/%d", step, total)
+
+            yield log
+        else:
+            with tqdm(total=total, desc="rollout", unit="step") as bar:
+                yield lambda step: bar.update(step - bar.n)
+    else:
+        yield lambda step: progress(step, total)

@@ -8,6 +8,10 @@
         viewer.loop_states(states)      # the open page switches to the new trajectory without a reload
     viewer.stop()
 
+A script whose only job is to show a result ends with ``viewer.serve(8080, block=True)``: it serves until
+Ctrl+C or `stop()` from another thread. In a notebook, a cell that ends with the viewer shows the page
+inline (`Viewer._repr_html_`, serving on a free port first), as does ``viewer.show()`` with IPython.
+
 The server serves a fixed set of names only: the page, its two scripts, the three.js licence, the
 trajectory (``/trajectory.bin``, see `energysim.viewer.trajectory`) and ``/version``, which the page polls.
 Every other path, including any with ``..``, gets 404; nothing is looked up on the file system. It
@@ -33,12 +37,16 @@ from energysim.mesh import SimplexMesh
 
 from . import trajectory
 from .httpd import Server, ServerLimits
+from .notebook import EMBED_HEIGHT, EMBED_WIDTH, check_frame_size, iframe_html
 from .trajectory import Marker, Surface
 
 if TYPE_CHECKING:
     from energysim.model.scene import Scene
 
 logger = logging.getLogger(__name__)
+
+# How often a blocked `serve`/`wait` wakes to notice Ctrl+C where a signal cannot interrupt a wait, s.
+_WAKE_INTERVAL = 0.2
 
 # URL path -> (file in static/, content type). The page and its assets, nothing else.
 _ASSETS = {
@@ -102,6 +110,10 @@ class Viewer:
         self._repack()
         self._server: Server | None = None
         self._thread: threading.Thread | None = None
+        # serve and stop may run on different threads (a blocked serve, stop from a worker): one at a time.
+        self._serve_lock = threading.RLock()
+        self._stopped = threading.Event()
+        self._stopped.set()
 
     # -- what is shown -------------------------------------------------------------------------------
 
@@ -213,8 +225,10 @@ class Viewer:
         *,
         allowed_hosts: Sequence[str] = (),
         limits: ServerLimits | None = None,
+        block: bool = False,
     ) -> str:
-        """Start serving in a background (daemon) thread and return the page's URL at once.
+        """Start serving in a background (daemon) thread and return the page's URL, at once or, with
+        `block`, once serving has ended.
 
         Args:
             port: TCP port; 0 picks a free one (see `port`).
@@ -226,10 +240,25 @@ class Viewer:
                 always accepted; requests naming any other host in ``Host`` get 421 (see
                 `energysim.viewer.hosts`).
             limits: time, size and connection limits; default `ServerLimits()`.
+            block: serve until Ctrl+C or `stop()` from another thread (see `wait`), then release the
+                port and return. For a script that only shows its result: without it, the server
+                thread ends with the script. The URL is logged at INFO level; choose the port (or call
+                `serve` and then `wait`) to know it beforehand.
 
         Raises RuntimeError if already serving, OSError if the port is taken, ValueError or TypeError
-        for a bad `port`, `allowed_hosts` entry or `limits`.
+        for a bad `port`, `allowed_hosts` entry, `limits` or `block`.
         """
+        if not isinstance(block, bool):
+            raise TypeError(f"block must be True or False, got {block!r}")
+        with self._serve_lock:
+            url = self._start(port, host, allowed_hosts, limits)
+            stopped = self._stopped
+        if block:
+            self._wait_for(stopped)
+        return url
+
+    def _start(self, port: int, host: str, allowed_hosts: Sequence[str], limits: ServerLimits | None) -> str:
+        """Check the arguments, bind and start the server thread; the caller holds _serve_lock."""
         if self._server is not None:
             raise RuntimeError(f"already serving at {self.url}; call stop() first")
         if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
@@ -249,6 +278,7 @@ class Viewer:
                 raise OSError(err.errno, f"port {port} on {host} is in use; pick another or port=0") from err
             raise
         self._server = server
+        self._stopped = threading.Event()
         self._thread = threading.Thread(
             target=server.serve_forever, args=(0.05,), name="energysim-viewer", daemon=True
         )
@@ -256,21 +286,84 @@ class Viewer:
         logger.info("viewer serving at %s", self.url)
         return self.url
 
+    def wait(self) -> None:
+        """Block until serving ends: `stop()` from another thread, or Ctrl+C, which stops the server
+        (the port is then free) and returns normally instead of raising KeyboardInterrupt.
+
+        Raises RuntimeError when not serving.
+        """
+        with self._serve_lock:
+            if self._server is None:
+                raise RuntimeError("the viewer is not serving; call serve() first")
+            stopped = self._stopped
+        self._wait_for(stopped)
+
+    def _wait_for(self, stopped: threading.Event) -> None:
+        """Block until `stopped` is set (by `stop`); Ctrl+C stops the server and returns."""
+        try:
+            # a timed wait, so that Ctrl+C is noticed even where a signal does not interrupt a lock
+            while not stopped.wait(_WAKE_INTERVAL):
+                pass
+        except KeyboardInterrupt:
+            logger.info("viewer: interrupted, stopping")
+            self.stop()
+
     def stop(self) -> None:
         """Stop serving, end every open connection and close the listening socket, so the port can be
-        bound again at once.
+        bound again at once; a `serve(block=True)` or `wait` blocked in another thread then returns.
 
-        Safe to call when not serving. Pages already open keep their last trajectory and show that the
-        server is gone.
+        Safe to call when not serving, and from any thread. Pages already open keep their last
+        trajectory and show that the server is gone.
         """
-        server, thread = self._server, self._thread
-        if server is None:
-            return
-        server.shutdown()
-        server.close()
-        if thread is not None:
-            thread.join()
-        self._server, self._thread = None, None
+        with self._serve_lock:
+            server, thread = self._server, self._thread
+            if server is None:
+                return
+            server.shutdown()
+            server.close()
+            if thread is not None:
+                thread.join()
+            self._server, self._thread = None, None
+            self._stopped.set()
+
+    # -- in a notebook -------------------------------------------------------------------------------
+
+    def _repr_html_(self) -> str:
+        """The page inline in a notebook, as an ``<iframe>`` of `url`; serves on a free loopback port
+        first when not serving.
+
+        The frame loads the URL in the notebook's browser, so that browser must reach this machine's
+        server: a notebook on this machine, or a remote kernel with its port forwarded (`serve` first,
+        with `allowed_hosts` when the forwarded port differs).
+        """
+        return iframe_html(self._ensure_serving(), EMBED_WIDTH, EMBED_HEIGHT)
+
+    def show(self, width: int | str = EMBED_WIDTH, height: int = EMBED_HEIGHT) -> Any:
+        """`IPython.display.IFrame` of the page, serving on a free loopback port first when not serving.
+
+        Args:
+            width: frame width, pixels (int) or a CSS length such as ``"100%"``.
+            height: frame height, pixels.
+
+        Raises ImportError when IPython is not installed (a notebook has it; a cell ending with the
+        viewer shows the page without it), ValueError for a bad `width` or `height`.
+        """
+        check_frame_size(width, height)
+        try:
+            from IPython.display import IFrame
+        except ImportError as err:
+            raise ImportError(
+                "Viewer.show() needs IPython (pip install ipython); or end a notebook cell with the viewer, "
+                f"or open {self.url if self.serving else 'the URL serve() returns'} in a browser"
+            ) from err
+        return IFrame(self._ensure_serving(), width=width, height=height)
+
+    def _ensure_serving(self) -> str:
+        """The URL, after starting the server on a free loopback port if it is not running."""
+        with self._serve_lock:
+            if self._server is None:
+                self._start(0, "127.0.0.1", (), None)
+            return self.url
 
     def _resource(self, path: str) -> tuple[bytes, str, str] | None:
         """``(body, content type, cache-control)`` served at URL `path`, or None (404)."""
