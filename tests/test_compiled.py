@@ -225,7 +225,7 @@ def test_the_compiled_energy_check_sums_the_same_energies_as_the_eager_one():
     # every kind of scene term (elastic, muscles, gravity, the ground's barrier), each at x itself
     scene, objective, x = _worm_objective(batch=2)
     x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
-    energies = sys.modules["energysim.integrators.step"]._energies
+    energies = sys.modules["energysim.integrators.common"].state_energies
     v = torch.randn(x.shape, dtype=x.dtype)
     eager = energies(scene, x, v, objective.action, compiled=False)
     fast = energies(scene, x, v, objective.action, compiled=True)
