@@ -8,11 +8,8 @@ import torch
 from conftest import random_rotation, small_box
 
 import energysim as es
-from energysim.fem.materials import (
-    lame_parameters,
-    stable_neo_hookean_density,
-    stable_neo_hookean_stress_hessian,
-)
+from energysim.fem.kernels import stable_neo_hookean_stress_hessian
+from energysim.fem.materials import lame_parameters, stable_neo_hookean_density
 from energysim.integrators.adjoint import step_terms
 from energysim.objective.derivatives import (
     autograd_element_hessian,

@@ -1,15 +1,10 @@
-"""Contact and friction as energies: static obstacles with an IPC barrier, CCD and lagged friction."""
+"""Contact and friction as energies: static obstacles with an IPC barrier, CCD and lagged friction,
+and the contact projection of explicit steps."""
 
 from energysim.contact.barrier import barrier, barrier_derivatives, default_barrier_stiffness
 from energysim.contact.friction import LaggedFriction, mollified_slip
-from energysim.contact.obstacles import (
-    BoxObstacle,
-    Ground,
-    HalfSpace,
-    Obstacle,
-    SphereObstacle,
-    contact_areas,
-)
+from energysim.contact.obstacle_term import Obstacle, contact_areas
+from energysim.contact.obstacles import BoxObstacle, Ground, HalfSpace, SphereObstacle
 
 __all__ = [
     "BoxObstacle",

@@ -78,6 +78,9 @@ class LaggedFriction(ElementEnergy):
         smoothing: ε = ε_v h, in m.
     """
 
+    has_gradient_kernel = True
+    has_hessian_kernel = True
+
     def __init__(
         self,
         element_vertices: Tensor,
@@ -119,10 +122,13 @@ class LaggedFriction(ElementEnergy):
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         return self.weight * mollified_slip(self._slip(element_positions), self.smoothing)
 
-    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """μλ f1(y)/y · u per vertex, shape `[B, m, 1, d]`, in N (closed form)."""
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """`element_energy` `[B, m]` in J and μλ f1(y)/y · u per vertex `[B, m, 1, d]` in N."""
         slip = self._slip(element_positions)
-        return (self.weight[..., None] * mollified_slip_gradient(slip, self.smoothing))[..., None, :]
+        energy = self.weight * mollified_slip(slip, self.smoothing)
+        return energy, (self.weight[..., None] * mollified_slip_gradient(slip, self.smoothing))[..., None, :]
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-vertex Hessian blocks `[B, m, d, d]`, in N/m (convex: positive semidefinite)."""

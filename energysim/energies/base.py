@@ -1,10 +1,22 @@
-"""The contract every energy term keeps.
+"""The contract every energy term keeps, and the capabilities a term declares in its type.
 
 A term is a small, pure function of positions: `term(x, action) -> energy`, with `x` of shape
 `[B, n, d]` (a batch of B configurations of n vertices in d = 2 or 3 dimensions) and the energy
 of shape `[B]`, in J. Rest data and material constants are buffers, so `.to(device, dtype)`
-moves them; a constant may require grad. Terms never compute forces: gradients, Hessian-vector
-products and Hessian blocks come from autograd in `energysim.objective.derivatives`.
+moves them; a constant may require grad. Gradients, Hessian-vector products and Hessian blocks
+come from autograd in `energysim.objective.derivatives`, unless the term declares a kernel.
+
+What else a term offers is declared once, by its class, never probed at run time:
+
+- its kind, by base class: `ElementEnergy` (a sum over small elements, with per-element Hessian
+  blocks), `VertexDiagonalEnergy` (a constant per-vertex Hessian diagonal: the inertia),
+  `StepLimitingEnergy` (a barrier that bounds how far a step may go: obstacles),
+  `DissipativeEnergy` (no stored energy, a velocity-dependent force: viscosity);
+- its kernels and hooks, by class flags: `is_linear`, `has_gradient_kernel`,
+  `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `is_actuated`.
+
+The solvers, the compiled evaluations and the integrators ask only these (`isinstance` or the
+flag), so a term that declares a kernel must implement it, and one that does not is never asked.
 """
 
 from __future__ import annotations
@@ -20,11 +32,18 @@ from energysim.mesh import SimplexMesh
 class EnergyTerm(nn.Module):
     """Base class of energy terms. Subclasses implement `forward(x, action) -> [B]` in J.
 
-    Class attributes that let solvers skip work:
+    Class flags (capabilities, declared by the subclass):
         is_linear: the energy is linear in `x`, so its Hessian is zero.
+        has_gradient_kernel: `value_and_gradient` gives E and ∇E in closed form (never None); the
+            compiled evaluations call only terms that declare it.
+        has_lagged_terms: `lagged_terms` may add terms to a step (friction, viscosity).
+        is_actuated: the term reads the action; `num_actuators` says how many entries.
     """
 
     is_linear: bool = False
+    has_gradient_kernel: bool = False
+    has_lagged_terms: bool = False
+    is_actuated: bool = False
 
     @property
     def scene(self) -> nn.Module | None:
@@ -50,24 +69,20 @@ class EnergyTerm(nn.Module):
         raise NotImplementedError
 
     def max_step(self, x: Tensor, dx: Tensor) -> Tensor | None:
-        """Largest α ≤ 1 such that `x + α dx` is admissible for this term, shape `[B]`; None: no limit.
-
-        The hook the line search starts from (contact terms use it to stay outside obstacles). A term
-        whose states can be inadmissible overrides it to raise ValueError, saying why, where `x` itself
-        is (as obstacles do); the default returns `step_limit`, the unchecked part, as it is.
-        """
+        """Largest α ≤ 1 such that `x + α dx` is admissible for this term, shape `[B]`; None: no limit
+        (only a `StepLimitingEnergy` has one)."""
         return self.step_limit(x, dx)
 
     def step_limit(self, x: Tensor, dx: Tensor) -> Tensor | None:
         """`max_step` without the check of `x`: NaN for batch entries where `x` is not admissible, and
-        no data-dependent branch, so that compiled code can call it (`Objective.trial`)."""
+        no data-dependent branch, so that compiled code can call it (`Objective.trial`); None here."""
         return None
 
     def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
-        """E(x) `[B]` and ∇E(x) `[B, n, d]` from closed-form kernels, without autograd; None where the
-        term has none (the solvers then differentiate `forward`). Kernels are checked against autograd
-        in the tests; they exist because a small scene's step is dominated by per-operation overhead,
-        and a backward pass doubles the operations."""
+        """E(x) `[B]` and ∇E(x) `[B, n, d]` from closed-form kernels, without autograd, where the class
+        declares `has_gradient_kernel`; else None (the solvers then differentiate `forward`). Kernels
+        are checked against autograd in the tests; they exist because a small scene's step is
+        dominated by per-operation overhead, and a backward pass doubles the operations."""
         return None
 
     def warm_start(self, x_prev: Tensor, candidate: Tensor) -> Tensor:
@@ -78,18 +93,88 @@ class EnergyTerm(nn.Module):
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """Terms this one adds to a single step's objective, built from the positions at the step's
-        start, `[B, n, d]` (friction, whose normal forces are taken there); default none."""
+        start, `[B, n, d]` (friction, whose normal forces are taken there); none unless the class
+        declares `has_lagged_terms`."""
         return []
+
+    @property
+    def num_actuators(self) -> int:
+        """How many action entries the term reads (0 unless `is_actuated`)."""
+        return 0
+
+
+class VertexDiagonalEnergy(EnergyTerm):
+    """A term whose Hessian is a constant diagonal, the same for the d coordinates of a vertex
+    (the implicit-Euler inertia): solvers add it to the assembled diagonal, L-BFGS starts from its
+    inverse. Subclasses implement `hessian_diagonal`."""
+
+    def hessian_diagonal(self) -> Tensor:  # pragma: no cover - abstract
+        """The Hessian's diagonal per vertex, shape `[n]`, in N/m."""
+        raise NotImplementedError
+
+
+class StepLimitingEnergy(EnergyTerm):
+    """A barrier, infinite where a state is not admissible, that bounds how far a step may go.
+
+    Subclasses implement `step_limit` (without a data-dependent branch) and `max_step`, which raises
+    ValueError, saying why, where `x` itself is not admissible. The line searches start from it.
+    """
+
+    def step_limit(self, x: Tensor, dx: Tensor) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def max_step(self, x: Tensor, dx: Tensor) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class DissipativeEnergy(EnergyTerm):
+    """A velocity-dependent force from a Rayleigh dissipation D(x, v), with no stored energy.
+
+    Its energy is zero (so implicit solvers and energy checks see nothing of it); explicit kicks
+    take the force from `dissipation_gradient`, implicit steps from `lagged_terms`. A class with
+    `has_batch_last_kernel` also has `batch_last_dissipation_gradient` (compiled batches).
+    """
+
+    is_linear = True  # a zero energy: nothing for Hessians, nothing for the energy check
+    has_gradient_kernel = True
+    has_lagged_terms = True
+    has_batch_last_kernel: bool = False
+
+    def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
+        return x.new_zeros(x.shape[0])
+
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Zero energy and zero gradient: the term stores nothing."""
+        return x.new_zeros(x.shape[0]), torch.zeros_like(x)
+
+    def dissipation(self, x: Tensor, v: Tensor) -> Tensor:  # pragma: no cover - abstract
+        """D(x, v) `[B]` in W at positions and velocities `[B, n, d]`."""
+        raise NotImplementedError
+
+    def dissipation_gradient(self, x: Tensor, v: Tensor) -> Tensor:  # pragma: no cover - abstract
+        """∂D/∂v `[B, n, d]` in N: minus the viscous forces."""
+        raise NotImplementedError
+
+    def batch_last_dissipation_gradient(
+        self, corners: list[list[Tensor]], velocities: list[list[Tensor]]
+    ) -> list[list[Tensor]]:  # pragma: no cover - abstract
+        """∂D/∂v entry by entry with the batch innermost (see `ElementEnergy.batch_last_forces`)."""
+        raise NotImplementedError
 
 
 class ElementEnergy(EnergyTerm):
     """A sum of energies of small elements, each depending on the positions of its k vertices.
 
     Subclasses set the buffer `element_vertices` (shape `[m, k]`) in `bind` and implement
-    `element_energy`; that structure lets solvers build per-element Hessian blocks.
+    `element_energy`; that structure lets solvers build per-element Hessian blocks (by autograd,
+    or by the term's `element_hessian` where it declares `has_hessian_kernel`). With
+    `has_gradient_kernel` it implements `element_energy_and_gradient`; with `has_batch_last_kernel`,
+    `batch_last_forces`.
     """
 
     element_vertices: Tensor
+    has_hessian_kernel: bool = False
+    has_batch_last_kernel: bool = False
 
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Energies of every element, shape `[B, m]`, in J.
@@ -100,23 +185,34 @@ class ElementEnergy(EnergyTerm):
         """
         raise NotImplementedError  # pragma: no cover - abstract
 
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:  # pragma: no cover - abstract
+        """`element_energy` `[B, m]` in J and its gradient per corner `[B, m, k, d]` in N, in one pass."""
+        raise NotImplementedError
+
+    def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:  # pragma: no cover
+        """Exact per-element Hessian blocks, shape `[B, m, k·d, k·d]`, in N/m."""
+        raise NotImplementedError
+
+    def batch_last_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> list[list[Tensor]]:  # pragma: no cover - abstract
+        """∂E/∂x entry by entry with the batch innermost, for compiled explicit steps of many bodies
+        (`energysim.objective.batch_last`): `corners[i][b]` is coordinate i of every element's corner
+        b, shape `[m, B]` in m, `action` transposed `[a, B]` or None, and the result's `[i][b]` is
+        ∂E/∂x_bi, `[m, B]` in N."""
+        raise NotImplementedError
+
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
         return self.element_energy(gather_vertices(x, self.element_vertices), action).sum(dim=-1)
 
     def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
-        """Uses the subclass's `element_energy_and_gradient(element_positions, action)` if any (one pass
-        for both), else its `element_gradient(element_positions, action) -> [B, m, k, d]` (N)."""
-        fused = getattr(self, "element_energy_and_gradient", None)
-        kernel = getattr(self, "element_gradient", None)
-        if fused is None and kernel is None:
+        """From `element_energy_and_gradient` where the class declares `has_gradient_kernel`, else None."""
+        if not self.has_gradient_kernel:
             return None
         with torch.no_grad():
-            element_positions = x[:, self.element_vertices]
-            if fused is not None:
-                energies, gradients = fused(element_positions, action)
-            else:
-                energies = self.element_energy(element_positions, action)
-                gradients = kernel(element_positions, action)
+            energies, gradients = self.element_energy_and_gradient(x[:, self.element_vertices], action)
             gradient = scatter_vertices(gradients, self.element_vertices, x.shape[1])
         return energies.sum(dim=-1), gradient
 
@@ -193,20 +289,22 @@ def check_positive(value: Tensor, name: str, unit: str) -> None:
 
 
 def limits_steps(term: EnergyTerm) -> bool:
-    """Whether `term` bounds how far a step may go (`EnergyTerm.step_limit`): a contact barrier,
-    infinite at its obstacle."""
-    return type(term).step_limit is not EnergyTerm.step_limit
+    """Whether `term` bounds how far a step may go: a `StepLimitingEnergy` (a contact barrier)."""
+    return isinstance(term, StepLimitingEnergy)
 
 
 def is_dissipative(term: EnergyTerm) -> bool:
-    """Whether `term` dissipates through a velocity-dependent force (`Viscosity`): explicit kicks
-    take it from `dissipation_gradient(x, v)`, compiled batches from
-    `batch_last_dissipation_gradient`."""
-    return hasattr(term, "dissipation_gradient")
+    """Whether `term` dissipates through a velocity-dependent force: a `DissipativeEnergy`."""
+    return isinstance(term, DissipativeEnergy)
 
 
 def has_element_blocks(term: EnergyTerm) -> bool:
-    """Whether `term` enters Hessians as element blocks: a nonlinear element term without a
-    per-vertex diagonal (`hessian_diagonal`). The eager assembly, the sparsity pattern and the
-    compiled scatter all ask this, so they agree on which blocks there are."""
-    return isinstance(term, ElementEnergy) and not term.is_linear and not hasattr(term, "hessian_diagonal")
+    """Whether `term` enters Hessians as element blocks: a nonlinear `ElementEnergy`. The eager
+    assembly, the sparsity pattern and the compiled scatter all ask this, so they agree on which
+    blocks there are."""
+    return isinstance(term, ElementEnergy) and not term.is_linear
+
+
+def has_vertex_diagonal(term: EnergyTerm) -> bool:
+    """Whether `term` enters Hessians as a per-vertex diagonal: a nonlinear `VertexDiagonalEnergy`."""
+    return isinstance(term, VertexDiagonalEnergy) and not term.is_linear

@@ -52,6 +52,8 @@ class DensityEnergy(ElementEnergy):
                 return 0.5 * self.stiffness * (torch.linalg.det(F) - 1.0) ** 2
     """
 
+    has_gradient_kernel = True
+    has_hessian_kernel = True
     rest_edge_inverse: Tensor
     rest_volume: Tensor
 

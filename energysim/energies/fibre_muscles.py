@@ -13,6 +13,7 @@ from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
 from energysim.energies.muscles import contraction
+from energysim.fem.kernels import fibre_energy_and_gradient, fibre_forces_entries, fibre_hessian_blocks
 from energysim.fem.kinematics import shape_gradients, simplex_rest_frame
 from energysim.mesh import SimplexMesh, format_indices
 
@@ -45,33 +46,6 @@ def fibre_vector(element_positions: Tensor, fibre_weights: Tensor) -> tuple[Tens
     return vector, torch.sqrt((vector * vector).sum(dim=-1) + 1e-30)
 
 
-def fibre_hessian_blocks(
-    vector: Tensor, stretch: Tensor, stiffness: Tensor, target_stretch: Tensor, fibre_weights: Tensor
-) -> Tensor:
-    """Exact Hessian of V k/2 (‖F m‖ − λ*)² per element, shape `[..., m, (d+1)d, (d+1)d]`, in N/m.
-
-    A closed form for speed (tests check it against autograd). In the fibre vector f = F m the
-    energy is a spring's: with n = f/‖f‖, ∂²E/∂f² = K = V k [n nᵀ + (1 − λ*/λ)(I − n nᵀ)]; and
-    ∂f/∂x_b = w_b I, so the (b, c) vertex block is w_b w_c K.
-
-    Args:
-        vector, stretch: from `fibre_vector`.
-        stiffness: V k per element in N·m (rest volume times Pa), broadcastable to `stretch`.
-        target_stretch: λ*, broadcastable to `stretch`.
-        fibre_weights: w_b = ∇N_b · m, shape `[m, d+1]`, in 1/m.
-    """
-    dim = vector.shape[-1]
-    corners = fibre_weights.shape[-1]
-    direction = vector / stretch[..., None]
-    outer = direction[..., :, None] * direction[..., None, :]
-    eye = torch.eye(dim, dtype=vector.dtype, device=vector.device)
-    transverse = (1.0 - target_stretch / stretch)[..., None, None]
-    block = (stiffness * torch.ones_like(stretch))[..., None, None] * (outer + transverse * (eye - outer))
-    weights = fibre_weights[:, :, None] * fibre_weights[:, None, :]  # [m, k, k]
-    hessian = weights[..., :, None, :, None] * block[..., None, :, None, :]  # [..., m, k, d, k, d]
-    return hessian.reshape(*block.shape[:-2], corners * dim, corners * dim)
-
-
 class FibreMuscles(ElementEnergy):
     """Σ_e V_e k_e/2 (‖F_e m_e‖ − (1 − c·a_e))² over the actuated elements.
 
@@ -88,6 +62,11 @@ class FibreMuscles(ElementEnergy):
             require grad.
         max_contraction: c, the fibre strain an action of 1 asks for, in (0, 1).
     """
+
+    has_gradient_kernel = True
+    has_hessian_kernel = True
+    has_batch_last_kernel = True
+    is_actuated = True
 
     def __init__(
         self,
@@ -169,21 +148,15 @@ class FibreMuscles(ElementEnergy):
         return contraction(action, self.element_actuator, self.max_contraction, self.num_actuators, "muscles")
 
     def batch_last_forces(self, corners: list[list[Tensor]], action: Tensor | None) -> list[list[Tensor]]:
-        """∂E/∂x entry by entry with the batch innermost (see `NeoHookean.batch_last_forces`):
-        `corners[i][b]` `[m_active, B]` in m, `action` transposed `[a, B]` or None; returns
-        ∂E/∂x_bi `[m_active, B]` in N. A spring's force along the fibre vector f = F m = Σ_b w_b x_b:
-        V k (‖f‖ − λ*) f/‖f‖, shared among the corners by their weights w_b."""
-        dim = len(corners)
-        weight = [self.fibre_weights[:, b][:, None] for b in range(dim + 1)]
-        fibre = [sum(weight[b] * corners[i][b] for b in range(dim + 1)) for i in range(dim)]
-        stretch = torch.sqrt(sum(component * component for component in fibre) + 1e-30)
+        """∂E/∂x entry by entry with the batch innermost (see `ElementEnergy.batch_last_forces`): a
+        spring's force along the fibre vector (`energysim.fem.kernels.fibre_forces_entries`)."""
         if action is None:
-            target = stretch.new_ones(())
+            target = self.rest_volume.new_ones(())
         else:
             target = 1.0 - self.max_contraction * action[self.element_actuator].clamp(-1.0, 1.0)
         stiffness = self.element_stiffness() * self.rest_volume
-        tension = (stiffness[:, None] if stiffness.ndim else stiffness) * (stretch - target) / stretch
-        return [[tension * fibre[i] * weight[b] for b in range(dim + 1)] for i in range(dim)]
+        stiffness = stiffness[:, None] if stiffness.ndim else stiffness
+        return fibre_forces_entries(corners, self.fibre_weights, stiffness, target)
 
     def fibre_stretch(self, x: Tensor) -> Tensor:
         """‖F m‖ of every actuated element at positions `x` `[B, n, d]`, shape `[B, m_active]`."""
@@ -195,24 +168,19 @@ class FibreMuscles(ElementEnergy):
         density = fibre_muscle_density(stretch, self.element_stiffness(), self.target_stretch(action))
         return self.rest_volume * density
 
-    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """∂E/∂x_b = V k (λ − λ*) (F m/λ) w_b per actuated element, shape `[B, m_active, d+1, d]`, in N."""
-        vector, stretch = fibre_vector(element_positions, self.fibre_weights)
-        tension = (
-            self.rest_volume * self.element_stiffness() * (stretch - self.target_stretch(action)) / stretch
-        )
-        return self.fibre_weights[..., None] * (tension[..., None] * vector)[..., None, :]
-
     def element_energy_and_gradient(
         self, element_positions: Tensor, action: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """`element_energy` and `element_gradient` from one fibre vector and one target stretch."""
+        """`element_energy` `[B, m_active]` in J and its corner gradients `[B, m_active, d+1, d]` in N
+        (`energysim.fem.kernels.fibre_energy_and_gradient`)."""
         vector, stretch = fibre_vector(element_positions, self.fibre_weights)
-        excess = stretch - self.target_stretch(action)
-        stiffness = self.rest_volume * self.element_stiffness()
-        tension = stiffness * excess / stretch
-        gradient = self.fibre_weights[..., None] * (tension[..., None] * vector)[..., None, :]
-        return 0.5 * stiffness * excess**2, gradient
+        return fibre_energy_and_gradient(
+            vector,
+            stretch,
+            self.rest_volume * self.element_stiffness(),
+            self.target_stretch(action),
+            self.fibre_weights,
+        )
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact Hessian blocks `[B, m_active, (d+1)d, (d+1)d]`, N/m (see `fibre_hessian_blocks`)."""

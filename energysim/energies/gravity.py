@@ -20,6 +20,7 @@ class Gravity(EnergyTerm):
     """
 
     is_linear = True
+    has_gradient_kernel = True
 
     def __init__(self, acceleration: Sequence[float] | Tensor) -> None:
         super().__init__()

@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from energysim.energies.base import EnergyTerm
+from energysim.energies.base import VertexDiagonalEnergy
 
 
-class Inertia(EnergyTerm):
+class Inertia(VertexDiagonalEnergy):
     """½h⁻² ‖x − x̂‖²_M with x̂ = x_n + h v_n, the inertia of one implicit-Euler step.
 
     Built per step by the step objective, not added to scenes. With an `anchor` a, the energy
@@ -22,6 +22,8 @@ class Inertia(EnergyTerm):
         predicted_positions: x̂, shape `[B, n, d]`, in m.
         anchor: a, shape `[B, n, d]` (the solver's starting point), or None.
     """
+
+    has_gradient_kernel = True
 
     def __init__(
         self, vertex_mass: Tensor, dt: float, predicted_positions: Tensor, anchor: Tensor | None = None

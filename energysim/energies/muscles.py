@@ -7,20 +7,20 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from energysim.energies.base import EnergyTerm
 from energysim.energies.springs import Springs
 from energysim.mesh import SimplexMesh
 from energysim.mesh.indices import as_indices
 
 
-def actuator_counts(terms: Iterable[object]) -> dict[str, int]:
-    """The actuated terms among `terms` (those that declare `num_actuators`, as `ActuatedSprings`
+def actuator_counts(terms: Iterable[EnergyTerm]) -> dict[str, int]:
+    """The actuated terms among `terms` (those that declare `is_actuated`, as `ActuatedSprings`
     and `FibreMuscles` do), by class name, with the most action entries any of that class reads."""
     counts: dict[str, int] = {}
     for term in terms:
-        count = getattr(term, "num_actuators", None)
-        if isinstance(count, int):
+        if term.is_actuated:
             name = type(term).__name__
-            counts[name] = max(counts.get(name, 0), count)
+            counts[name] = max(counts.get(name, 0), term.num_actuators)
     return counts
 
 
@@ -91,6 +91,8 @@ class ActuatedSprings(Springs):
         max_contraction: c, the fraction of the rest length an action of 1 takes off, in (0, 1).
         rest_length: ℓ₀ in m, a scalar or shape `[s]`; None measures it on the rest mesh.
     """
+
+    is_actuated = True
 
     def __init__(
         self,

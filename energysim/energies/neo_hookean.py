@@ -5,33 +5,33 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
-from energysim.fem.kinematics import (
-    corner_forces_entries,
-    deformation_gradient,
-    deformation_gradient_entries,
-    shape_gradients,
-    simplex_rest_frame,
-)
-from energysim.fem.materials import (
-    lame_parameters,
-    stable_neo_hookean_density,
+from energysim.energies.base import as_parameter, check_per_element, check_positive
+from energysim.energies.derived import DensityEnergy
+from energysim.fem.kernels import (
+    element_major_energy_and_gradient,
     stable_neo_hookean_density_and_stress,
-    stable_neo_hookean_stress,
     stable_neo_hookean_stress_entries,
     stable_neo_hookean_stress_hessian,
 )
+from energysim.fem.kinematics import corner_forces_entries, deformation_gradient, deformation_gradient_entries
+from energysim.fem.materials import lame_parameters, stable_neo_hookean_density
 from energysim.linalg.small_matmul import small_matmul
 from energysim.mesh import SimplexMesh
 
 
-class NeoHookean(ElementEnergy):
+class NeoHookean(DensityEnergy):
     """Σ_e V_e ψ(F_e) with ψ the stable neo-Hookean density (see `energysim.fem.materials`).
+
+    The density is the definition; the gradient, the Hessian blocks and the batch-last forces are
+    the hand-written kernels of `energysim.fem.kernels`, which replace the derived forms where they
+    are measured faster.
 
     Args:
         youngs_modulus: E in Pa, a scalar or one per element (shape `[m]`); may require grad.
         poissons_ratio: ν, in (−1, 0.5), a scalar or shape `[m]`; may require grad.
     """
+
+    has_batch_last_kernel = True
 
     def __init__(self, youngs_modulus: float | Tensor = 1e5, poissons_ratio: float | Tensor = 0.3) -> None:
         super().__init__()
@@ -51,48 +51,26 @@ class NeoHookean(ElementEnergy):
     def bind(self, mesh: SimplexMesh, vertex_mass: Tensor) -> None:
         for name in ("youngs_modulus", "poissons_ratio"):
             check_per_element(getattr(self, name), mesh.num_elements, name, "element")
-        rest_edge_inverse, rest_volume = simplex_rest_frame(mesh.vertices, mesh.elements)
-        self.register_buffer("element_vertices", mesh.elements)
-        self.register_buffer("rest_edge_inverse", rest_edge_inverse)
-        self.register_buffer("rest_volume", rest_volume)
-        # S = ∂vec(F)/∂x_e, constant per element: F_kj = Σ_b x_bk ∇N_bj gives ∇N_bj δ_kl, shape
-        # [m, d·d, (d+1)·d]. With √V folded in, K_e = (√V S)ᵀ ∂²ψ/∂F² (√V S) needs no extra pass.
-        dim = mesh.dim
-        grad_n = shape_gradients(rest_edge_inverse)
-        self.register_buffer("shape_gradient", grad_n, persistent=False)
-        eye = torch.eye(dim, dtype=grad_n.dtype)
-        strain_map = (eye[None, :, None, None, :] * grad_n.transpose(1, 2)[:, None, :, :, None]).flatten(3)
-        weighted = strain_map.flatten(1, 2) * rest_volume.sqrt()[:, None, None]
-        self.register_buffer("weighted_strain_map", weighted.contiguous(), persistent=False)
-        self.register_buffer("weighted_strain_map_t", weighted.transpose(1, 2).contiguous(), persistent=False)
-        # element-major copies for the compiled gradient (`value_and_gradient`): elements last
+        super().bind(mesh, vertex_mass)
+        # element-major copies for the compiled kernels: elements last
         self.register_buffer("element_vertices_t", mesh.elements.T.contiguous(), persistent=False)
-        self.register_buffer("shape_gradient_t", grad_n.permute(1, 2, 0).contiguous(), persistent=False)
+        shape_gradient_t = self.shape_gradient.permute(1, 2, 0).contiguous()
+        self.register_buffer("shape_gradient_t", shape_gradient_t, persistent=False)
 
     def lame(self) -> tuple[Tensor, Tensor]:
         """(μ, λ) in Pa, scalars or shape `[m]`."""
         return lame_parameters(self.youngs_modulus, self.poissons_ratio)
 
-    def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        mu, lam = self.lame()
-        F = deformation_gradient(element_positions, self.rest_edge_inverse)
-        return self.rest_volume * stable_neo_hookean_density(F, mu, lam)
-
-    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """Per-element vertex forces' negatives V P ∇N_b, shape `[B, m, d+1, d]`, in N (closed form)."""
-        mu, lam = self.lame()
-        F = deformation_gradient(element_positions, self.rest_edge_inverse)
-        stress = stable_neo_hookean_stress(F, mu, lam) * self.rest_volume[:, None, None]
-        return self.shape_gradient @ stress.transpose(-1, -2)
+    def density(self, F: Tensor) -> Tensor:
+        """ψ(F) in J/m³, `stable_neo_hookean_density` with this term's Lamé parameters."""
+        return stable_neo_hookean_density(F, *self.lame())
 
     def element_energy_and_gradient(
         self, element_positions: Tensor, action: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """`element_energy` and `element_gradient` from one deformation gradient and one set of
-        invariants, shapes `[B, m]` (J) and `[B, m, d+1, d]` (N)."""
-        mu, lam = self.lame()
+        """V ψ(F) `[B, m]` in J and V P ∇N_b `[B, m, d+1, d]` in N, from one set of invariants."""
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
-        density, stress = stable_neo_hookean_density_and_stress(F, mu, lam)
+        density, stress = stable_neo_hookean_density_and_stress(F, *self.lame())
         stress = stress * self.rest_volume[:, None, None]
         return self.rest_volume * density, self.shape_gradient @ stress.transpose(-1, -2)
 
@@ -101,54 +79,26 @@ class NeoHookean(ElementEnergy):
             return self.value_and_gradient(x, action)[0]  # element-major; the compiler drops ∇E
         return super().forward(x, action)
 
-    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
-        """E(x) `[B]` and ∇E(x) `[B, n, d]`; see `ElementEnergy.value_and_gradient`.
-
-        While `torch.compile` traces CPU tensors, the same arithmetic is laid out element-major:
-        Inductor vectorises its generated loops over the innermost index, and in the per-element
-        layout `[B, m, k, d]` that index runs over 3 or 4 entries, so most of each vector went
-        unused and the two 3×3 products left the loops for batched BLAS calls. With the elements
-        innermost the whole kernel is one loop over them: the compiled gradient of the 810-tet
-        cantilever took 54 instead of 178 µs (unrolled eight times, one thread).
-        """
+    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """E(x) `[B]` and ∇E(x) `[B, n, d]`; while `torch.compile` traces CPU tensors, element-major
+        (`energysim.fem.kernels.element_major_energy_and_gradient`)."""
         if not (torch.compiler.is_compiling() and x.device.type == "cpu"):
             return super().value_and_gradient(x, action)
-        batch, num_vertices, dim = x.shape
-        mu, lam = self.lame()
-        # [B, d, k, m]: corner b's coordinate i of element e at [:, i, b, e]
-        corners = x.transpose(1, 2)[:, :, self.element_vertices_t]
-        # F_ij = Σ_b x_bi ∇N_bj, as [B, d, d, m]
-        F = (corners[:, :, :, None, :] * self.shape_gradient_t[None, None]).sum(dim=2)
-        density, stress = stable_neo_hookean_density_and_stress(F.permute(0, 3, 1, 2), mu, lam)
-        stress = (stress * self.rest_volume[:, None, None]).permute(0, 2, 3, 1)
-        # ∂E/∂x_bi = V Σ_j P_ij ∇N_bj, as [B, d, k, m]
-        forces = (stress[:, :, None] * self.shape_gradient_t[None, None]).sum(dim=3)
-        dofs = self.element_vertices_t[None] * dim + torch.arange(dim, device=x.device)[:, None, None]
-        flat = x.new_zeros(batch, num_vertices * dim)
-        flat = flat.index_add(1, dofs.reshape(-1), forces.reshape(batch, -1))
-        return (self.rest_volume * density).sum(dim=-1), flat.reshape(x.shape)
+        return element_major_energy_and_gradient(
+            x, self.element_vertices_t, self.shape_gradient_t, self.rest_volume, *self.lame()
+        )
 
     def batch_last_forces(self, corners: list[list[Tensor]], action: Tensor | None) -> list[list[Tensor]]:
-        """∂E/∂x entry by entry with the batch innermost, for compiled explicit steps of many bodies
-        (`energysim.objective.compiled`): `corners[i][b]` is coordinate i of every element's corner b, shape
-        `[m, B]` in m, and the result's `[i][b]` is ∂E/∂x_bi, `[m, B]` in N.
-
-        With F_ij = Σ_b x_bi ∇N_bj and P in entries (`stable_neo_hookean_stress_entries`), the whole
-        element kernel is scalar arithmetic vectorised over the batch.
-        """
+        """∂E/∂x entry by entry with the batch innermost (see `ElementEnergy.batch_last_forces`): the
+        whole element kernel is scalar arithmetic vectorised over the batch."""
         F = deformation_gradient_entries(corners, self.shape_gradient_t)
         mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
         P = stable_neo_hookean_stress_entries(F, mu, lam)
         return corner_forces_entries(P, self.shape_gradient_t, self.rest_volume)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """Exact per-element Hessian blocks, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.
-
-        A closed-form kernel for speed (the generic path differentiates `element_energy` twice);
-        tests check the two agree. With F = Σ_b x_b ⊗ ∇N_b, K_(bk),(cl) = V Σ_jq ∇N_bj ∂²ψ/∂F_kj∂F_lq ∇N_cq.
-        Compiled on the CPU, its two products fuse into the generated loops (`energysim.linalg.small_matmul`).
-        """
-        mu, lam = self.lame()
+        """Exact per-element Hessian blocks V Sᵀ ∂²ψ/∂F² S, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.
+        Compiled on the CPU, its two products fuse into the generated loops (`small_matmul`)."""
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
-        stiffness = stable_neo_hookean_stress_hessian(F, mu, lam)
+        stiffness = stable_neo_hookean_stress_hessian(F, *self.lame())
         return small_matmul(self.weighted_strain_map_t, small_matmul(stiffness, self.weighted_strain_map))

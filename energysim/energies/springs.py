@@ -50,6 +50,9 @@ class Springs(ElementEnergy):
         rest_length: ℓ₀ in m, a scalar or shape `[s]`; None measures it on the rest mesh.
     """
 
+    has_gradient_kernel = True
+    has_hessian_kernel = True
+
     def __init__(
         self,
         edges: Tensor | None = None,
@@ -92,12 +95,15 @@ class Springs(ElementEnergy):
         _, length = spring_length(element_positions, self.rest_length)
         return spring_energy(length, self.stiffness, self.target_length(action))
 
-    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """∂E/∂x of both ends, k(ℓ − ℓ₀) (∓n), shape `[B, s, 2, d]`, in N (closed form)."""
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """Energies `[B, s]` in J and ∂E/∂x of both ends, k(ℓ − ℓ₀) (∓n), `[B, s, 2, d]` in N."""
         delta, length = spring_length(element_positions, self.rest_length)
-        tension = self.stiffness * (length - self.target_length(action)) / length
+        target = self.target_length(action)
+        tension = self.stiffness * (length - target) / length
         pull = tension[..., None] * delta
-        return torch.stack([-pull, pull], dim=-2)
+        return spring_energy(length, self.stiffness, target), torch.stack([-pull, pull], dim=-2)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-spring Hessian blocks `[B, s, 2d, 2d]` (closed form; see `spring_hessian_blocks`)."""

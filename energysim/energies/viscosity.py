@@ -22,7 +22,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from energysim.energies.base import ElementEnergy, EnergyTerm, as_parameter, check_positive, scatter_vertices
+from energysim.energies.base import (
+    DissipativeEnergy,
+    ElementEnergy,
+    EnergyTerm,
+    as_parameter,
+    check_positive,
+    scatter_vertices,
+)
+from energysim.fem.kernels import lagged_viscosity_hessian_blocks, viscous_stress, viscous_stress_entries
 from energysim.fem.kinematics import (
     corner_forces_entries,
     deformation_gradient,
@@ -39,7 +47,7 @@ def strain_rate(F: Tensor, rate: Tensor) -> Tensor:
     return 0.5 * (product + product.transpose(-1, -2))
 
 
-class Viscosity(EnergyTerm):
+class Viscosity(DissipativeEnergy):
     """Kelvin–Voigt viscosity η on every element of the mesh: no stored energy, a dissipation.
 
     Its energy is zero (so implicit solvers and energy checks see nothing of it): it acts through
@@ -51,7 +59,7 @@ class Viscosity(EnergyTerm):
             element modes (ω ≈ 3,000 /s) ring down within periods.
     """
 
-    is_linear = True  # a zero energy: nothing for Hessians, nothing for the energy check
+    has_batch_last_kernel = True
 
     def __init__(self, viscosity: float | Tensor) -> None:
         super().__init__()
@@ -71,13 +79,6 @@ class Viscosity(EnergyTerm):
             "shape_gradient_t", self.shape_gradient.permute(1, 2, 0).contiguous(), persistent=False
         )
 
-    def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
-        return x.new_zeros(x.shape[0])
-
-    def value_and_gradient(self, x: Tensor, action: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Zero energy and zero gradient: the term stores nothing."""
-        return x.new_zeros(x.shape[0]), torch.zeros_like(x)
-
     def _deformation_and_rate(self, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
         F = deformation_gradient(x[:, self.element_vertices], self.rest_edge_inverse)
         rate = deformation_gradient(v[:, self.element_vertices], self.rest_edge_inverse)
@@ -92,27 +93,18 @@ class Viscosity(EnergyTerm):
     def dissipation_gradient(self, x: Tensor, v: Tensor) -> Tensor:
         """∂D/∂v `[B, n, d]` in N: minus the viscous forces (closed form, checked against autograd)."""
         F, rate = self._deformation_and_rate(x, v)
-        stress = 2.0 * self.viscosity * (F @ strain_rate(F, rate)) * self.rest_volume[:, None, None]
+        stress = viscous_stress(F, rate, self.viscosity) * self.rest_volume[:, None, None]
         corner = self.shape_gradient @ stress.transpose(-1, -2)  # [B, m, k, d]: V P ∇N_b
         return scatter_vertices(corner, self.element_vertices, x.shape[1])
 
     def batch_last_dissipation_gradient(
         self, corners: list[list[Tensor]], velocities: list[list[Tensor]]
     ) -> list[list[Tensor]]:
-        """∂D/∂v entry by entry with the batch innermost (see `NeoHookean.batch_last_forces`):
+        """∂D/∂v entry by entry with the batch innermost (see `ElementEnergy.batch_last_forces`):
         `corners[i][b]` and `velocities[i][b]` `[m, B]`; returns ∂D/∂v_bi `[m, B]` in N."""
-        dim = len(corners)
         F = deformation_gradient_entries(corners, self.shape_gradient_t)
         rate = deformation_gradient_entries(velocities, self.shape_gradient_t)
-        product = [[sum(F[k][a] * rate[k][c] for k in range(dim)) for c in range(dim)] for a in range(dim)]
-        rate_of_strain = [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
-        stress = [
-            [
-                2.0 * self.viscosity * sum(F[i][a] * rate_of_strain[a][j] for a in range(dim))
-                for j in range(dim)
-            ]
-            for i in range(dim)
-        ]
+        stress = viscous_stress_entries(F, rate, self.viscosity)
         return corner_forces_entries(stress, self.shape_gradient_t, self.rest_volume)
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
@@ -135,6 +127,9 @@ class LaggedViscosity(ElementEnergy):
         dt: the step h in s.
     """
 
+    has_gradient_kernel = True
+    has_hessian_kernel = True
+
     def __init__(self, viscosity: Viscosity, start_gradient: Tensor, dt: float) -> None:
         super().__init__()
         self.element_vertices = viscosity.element_vertices
@@ -152,21 +147,16 @@ class LaggedViscosity(ElementEnergy):
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         return self.weight * self._strain(element_positions).square().sum(dim=(-1, -2))
 
-    def element_gradient(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """2ηV/h · F_n S ∇N_b per corner, shape `[B, m, k, d]`, in N (closed form)."""
-        stress = 2.0 * self.weight[:, None, None] * (self.start_gradient @ self._strain(element_positions))
-        return self.shape_gradient @ stress.transpose(-1, -2)
+    def element_energy_and_gradient(
+        self, element_positions: Tensor, action: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """`element_energy` `[B, m]` in J and 2ηV/h · F_n S ∇N_b per corner `[B, m, k, d]` in N."""
+        strain = self._strain(element_positions)
+        stress = 2.0 * self.weight[:, None, None] * (self.start_gradient @ strain)
+        energy = self.weight * strain.square().sum(dim=(-1, -2))
+        return energy, self.shape_gradient @ stress.transpose(-1, -2)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Constant blocks (ηV/h)[(F_nF_nᵀ)_kl ∇N_b·∇N_c + (F_n∇N_c)_k (F_n∇N_b)_l], shape
         `[B, m, (d+1)d, (d+1)d]`, in N/m (closed form, checked against autograd)."""
-        F = self.start_gradient
-        batch, elements, dim, _ = F.shape
-        corners = self.shape_gradient.shape[-2]
-        dots = self.shape_gradient @ self.shape_gradient.transpose(-1, -2)  # [m, k, k]
-        mapped = self.shape_gradient @ F.transpose(-1, -2)  # [B, m, k, d]: F ∇N_c
-        gram = F @ F.transpose(-1, -2)  # [B, m, d, d]
-        first = dots[None, :, :, None, :, None] * gram[:, :, None, :, None, :]  # [B, m, b, k, c, l]
-        block = first + torch.einsum("xmck,xmbl->xmbkcl", mapped, mapped)
-        block = self.weight[None, :, None, None, None, None] * block
-        return block.reshape(batch, elements, corners * dim, corners * dim)
+        return lagged_viscosity_hessian_blocks(self.start_gradient, self.shape_gradient, self.weight)

@@ -82,7 +82,7 @@ def check_terms(terms: Sequence[EnergyTerm]) -> None:
         type(term).__name__
         for term in terms
         if not (is_explicit_contact(term) or is_dissipative(term))
-        and (limits_steps(term) or type(term).lagged_terms is not EnergyTerm.lagged_terms)
+        and (limits_steps(term) or term.has_lagged_terms)
     ]
     if offending:
         raise ValueError(

@@ -10,8 +10,11 @@ gradient, slopes and residual where it lands), the warm start's candidates cut b
 admissible steps with their energies, and the Hessian of a small system, its element blocks
 scattered straight into a dense `[B, N, N]` matrix or into LAPACK's band storage
 (`energysim.linalg.banded`), no CSR in between.
-They compute what the eager paths compute, up to the order of floating-point operations (the
-tests compare them to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m with the same iterations).
+The compiled functions are the eager ones, compiled: the evaluations of
+`energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
+kicks of `energysim.objective.batch_last`; only the Hessian's scatter into dense or band storage
+is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk
+to 1e-10 m with the same iterations.
 
 Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
 over a 5 s walk): the worm 42.5 → 11.8, the 2D crawler 22.1 → 8.5 and the 2D walker 25.6 → 10.2
@@ -29,13 +32,12 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from energysim.contact.obstacles import project_contacts
-from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, is_dissipative
+from energysim.contact.projection import project_contacts
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
 from energysim.linalg.assembly import dof_indices
 from energysim.linalg.banded import (
     band_diagonal_positions,
@@ -44,98 +46,41 @@ from energysim.linalg.banded import (
     eliminate_fixed_in_bands,
 )
 from energysim.linalg.block_tridiagonal import LevelLayout
-from energysim.linalg.caching import IdentityCache
+from energysim.objective import batch_last, evaluation
+from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH, BatchLastPlan, batch_last_plan
+from energysim.objective.evaluation import element_groups, step_limit
+
+__all__ = [
+    "BATCH_LAST_MIN_BATCH",
+    "LEAPFROG_CHUNK",
+    "band_hessian",
+    "batch_last_plan",
+    "call",
+    "cut_back",
+    "dense_hessian",
+    "energy",
+    "energy_and_gradient",
+    "has_closed_forms",
+    "leapfrog",
+    "step_limit",
+    "term_energies",
+    "trial",
+]
 
 
 def has_closed_forms(terms: Sequence[EnergyTerm], *, hessian: bool) -> bool:
-    """Whether every term has a closed-form gradient (and, with `hessian`, a closed-form Hessian:
-    a per-vertex diagonal or element blocks), which is what the compiled functions call."""
+    """Whether every term declares a closed-form gradient (`has_gradient_kernel`) and, with `hessian`,
+    closed-form Hessian entries (linear, a `VertexDiagonalEnergy`, or element blocks from
+    `has_hessian_kernel`), which is what the compiled functions call."""
     for term in terms:
-        if isinstance(term, ElementEnergy):
-            gradient = hasattr(term, "element_energy_and_gradient") or hasattr(term, "element_gradient")
-            blocks = term.is_linear or hasattr(term, "element_hessian")
-        else:
-            gradient = type(term).value_and_gradient is not EnergyTerm.value_and_gradient
-            blocks = term.is_linear or hasattr(term, "hessian_diagonal")
-        if not gradient or (hessian and not blocks):
+        if not term.has_gradient_kernel:
+            return False
+        blocks = term.is_linear or has_vertex_diagonal(term) or (
+            isinstance(term, ElementEnergy) and term.has_hessian_kernel
+        )
+        if hessian and not blocks:
             return False
     return True
-
-
-def _at(term: EnergyTerm, x: Tensor, anchor: Tensor | None) -> Tensor:
-    # as `Objective`: linear terms (gravity) see x − anchor, which keeps their rounding small
-    return x - anchor if term.is_linear and anchor is not None else x
-
-
-def _energy(terms: tuple[EnergyTerm, ...], anchor: Tensor | None, action: Tensor | None, x: Tensor) -> Tensor:
-    total = x.new_zeros(x.shape[0])
-    for term in terms:
-        total = total + term(_at(term, x, anchor), action)
-    return total
-
-
-def _term_energies(terms: tuple[EnergyTerm, ...], action: Tensor | None, x: Tensor) -> Tensor:
-    return torch.stack([term(x, action) for term in terms])
-
-
-def _energy_and_gradient(
-    terms: tuple[EnergyTerm, ...], anchor: Tensor | None, action: Tensor | None, free: Tensor, x: Tensor
-) -> tuple[Tensor, Tensor]:
-    total = x.new_zeros(x.shape[0])
-    gradient = torch.zeros_like(x)
-    for term in terms:
-        value, term_gradient = term.value_and_gradient(_at(term, x, anchor), action)
-        total = total + value
-        gradient = gradient + term_gradient
-    return total, gradient * free[:, None].to(gradient.dtype)
-
-
-def step_limit(terms: Sequence[EnergyTerm], x: Tensor, direction: Tensor) -> Tensor:
-    """The largest fraction of `direction` every term allows from `x`, `[B]`, at most 1, unchecked
-    (`EnergyTerm.step_limit`): NaN where `x` is not admissible. Traced inside the compiled functions,
-    and `Objective.max_step`'s eager evaluation."""
-    limit = x.new_ones(x.shape[0])
-    for term in terms:
-        term_limit = term.step_limit(x, direction)
-        if term_limit is not None:
-            limit = torch.minimum(limit, term_limit)
-    return limit
-
-
-def _cut_back(
-    terms: tuple[EnergyTerm, ...],
-    anchor: Tensor | None,
-    action: Tensor | None,
-    origin: Tensor,
-    targets: tuple[Tensor, ...],
-) -> tuple[Tensor, Tensor, Tensor]:
-    energies, cuts, limits = [_energy(terms, anchor, action, origin)], [], []
-    for target in targets:
-        motion = target - origin
-        limit = step_limit(terms, origin, motion)
-        cuts.append(origin + limit[:, None, None] * motion)
-        energies.append(_energy(terms, anchor, action, cuts[-1]))
-        limits.append(limit)
-    return torch.stack(cuts), torch.stack(energies), torch.stack(limits)
-
-
-def _trial(
-    terms: tuple[EnergyTerm, ...],
-    anchor: Tensor | None,
-    action: Tensor | None,
-    free: Tensor,
-    residual_scale: Tensor,
-    x: Tensor,
-    direction: Tensor,
-    gradient: Tensor,
-) -> tuple[Tensor, ...]:
-    limit = step_limit(terms, x, direction)
-    trial_x = x + limit[:, None, None] * direction
-    energy, trial_gradient = _energy_and_gradient(terms, anchor, action, free, trial_x)
-    slope = (gradient * direction).sum(dim=(-1, -2))
-    trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
-    residual = (trial_gradient * residual_scale[:, None]).abs().amax(dim=(-1, -2))
-    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual
 
 
 def _leapfrog(
@@ -149,117 +94,27 @@ def _leapfrog(
     h: Tensor,
     substeps: int,
 ) -> tuple[Tensor, Tensor]:
-    # `energysim.integrators.explicit.leapfrog` with the closed-form gradients and the contact projections,
-    # unrolled; the energies it computes along the way are dead code that the compiler drops
-    if obstacles:
-        v = project_contacts(obstacles, free, x, v, 0.5 * h)
-    for _ in range(substeps):
-        x = x + (0.5 * h) * v
-        _, gradient = _energy_and_gradient(terms, None, action, free, x)
-        v = v - h * gradient * inverse_mass[:, None]
-        for term in terms:
-            if is_dissipative(term):
-                v = v - h * term.dissipation_gradient(x, v) * inverse_mass[:, None]
-        if obstacles:
-            v = project_contacts(obstacles, free, x, v, h)
-        x = x + (0.5 * h) * v
-    return x, v
+    # `energysim.integrators.explicit.leapfrog` itself, with the closed-form gradients and the contact
+    # projections; the energies computed along the way are dead code that the compiler drops
+    dissipative = [term for term in terms if is_dissipative(term)]
 
+    def acceleration(y: Tensor) -> Tensor:
+        return -evaluation.energy_and_gradient(terms, None, action, free, y)[1] * inverse_mass[:, None]
 
-def _corner_dofs(term: EnergyTerm, dim: int, device: torch.device) -> Tensor:
-    # the DOF rows `[d, k, m]` of the corners of `term`'s elements in a `[n·d, B]` state
-    return term.element_vertices.T[None] * dim + torch.arange(dim, device=device)[:, None, None]
+    def damping(y: Tensor, u: Tensor) -> Tensor:
+        return -sum(term.dissipation_gradient(y, u) for term in dissipative) * inverse_mass[:, None]
 
+    def contact(y: Tensor, u: Tensor, horizon: Tensor) -> Tensor:
+        return project_contacts(obstacles, free, y, u, horizon)
 
-def _corners(values: Tensor, corner_dofs: Tensor) -> list[list[Tensor]]:
-    # rows `corner_dofs` of `values` `[n·d, B]` as corners[i][b] `[m, B]`
-    gathered = values[corner_dofs]
-    return [[gathered[i, b] for b in range(gathered.shape[1])] for i in range(gathered.shape[0])]
-
-
-def _scatter_corners(
-    gradient: Tensor, corner_dofs: Tensor, forces: Sequence[list[list[Tensor]]], dim: int
-) -> Tensor:
-    # Σ over `forces` (each [i][b] `[m, B]`) added onto the DOF rows of `gradient` `[n·d, B]`
-    total = torch.stack(
-        [torch.stack([sum(f[i][b] for f in forces) for b in range(dim + 1)]) for i in range(dim)]
+    return _EXPLICIT["leapfrog"](
+        x, v, h, substeps, acceleration, contact if obstacles else None, damping if dissipative else None
     )
-    return gradient.index_add(0, corner_dofs.reshape(-1), total.reshape(-1, gradient.shape[1]))
 
 
-def _kick_batch_last(
-    terms: tuple[EnergyTerm, ...],
-    groups: tuple[tuple[int, ...], ...],
-    obstacles: tuple[EnergyTerm, ...],
-    action: Tensor | None,
-    free: Tensor,
-    inverse_mass: Tensor,
-    x: Tensor,
-    v: Tensor,
-    h: Tensor,
-    drift: Tensor | None,
-) -> tuple[Tensor, Tensor]:
-    # One leapfrog kick at the midpoint x, on states laid out `[n·d, B]`, batch innermost: gathers
-    # and scatters move rows of B contiguous numbers, and every element kernel (`batch_last_forces`)
-    # is one loop vectorised over the batch, the terms of a group sharing one gather and one
-    # scatter. Terms outside `groups` (gravity) give their gradient in the usual layout. With a
-    # `drift`, the contact projection and the drift follow (`_finish_batch_last`); without one, the
-    # caller's viscous kick does them (`_viscous_kick_batch_last`).
-    dofs, batch = x.shape
-    n, dim = inverse_mass.shape[0], dofs // inverse_mass.shape[0]
-    action_t = None if action is None else action.T
-    grouped = {index for group in groups for index in group}
-    gradient = x.new_zeros(dofs, batch)
-    for group in groups:
-        corner_dofs = _corner_dofs(terms[group[0]], dim, x.device)
-        corners = _corners(x, corner_dofs)
-        forces = [terms[index].batch_last_forces(corners, action_t) for index in group]
-        gradient = _scatter_corners(gradient, corner_dofs, forces, dim)
-    for index, term in enumerate(terms):
-        if index not in grouped:
-            natural = x.T.reshape(batch, n, dim)
-            gradient = gradient + term.value_and_gradient(natural, action)[1].reshape(batch, dofs).T
-    v = v - h * gradient * inverse_mass.repeat_interleave(dim)[:, None]
-    if drift is None:
-        return x, v
-    return _finish_batch_last(obstacles, free, x, v, h, drift)
-
-
-def _viscous_kick_batch_last(
-    terms: tuple[EnergyTerm, ...],
-    obstacles: tuple[EnergyTerm, ...],
-    free: Tensor,
-    inverse_mass: Tensor,
-    x: Tensor,
-    v: Tensor,
-    h: Tensor,
-    drift: Tensor,
-) -> tuple[Tensor, Tensor]:
-    # The viscous kick of the dissipative `terms` at the velocity the elastic kick left
-    # (`explicit.leapfrog`), then contact and drift. A compiled function of its own: in one with the
-    # elastic kernels, which the compiler fuses with these over the same elements, the kick took
-    # 2.1 ms where apart the two take 0.4 and 0.5 (64 worms, one thread).
-    dofs, batch = x.shape
-    dim = dofs // inverse_mass.shape[0]
-    gradient = x.new_zeros(dofs, batch)
-    for term in terms:
-        corner_dofs = _corner_dofs(term, dim, x.device)
-        forces = term.batch_last_dissipation_gradient(_corners(x, corner_dofs), _corners(v, corner_dofs))
-        gradient = _scatter_corners(gradient, corner_dofs, [forces], dim)
-    v = v - h * gradient * inverse_mass.repeat_interleave(dim)[:, None]
-    return _finish_batch_last(obstacles, free, x, v, h, drift)
-
-
-def _finish_batch_last(
-    obstacles: tuple[EnergyTerm, ...], free: Tensor, x: Tensor, v: Tensor, h: Tensor, drift: Tensor
-) -> tuple[Tensor, Tensor]:
-    # a kick's contact projection and the drift after it, on `[n·d, B]` states
-    dofs, batch = x.shape
-    n = free.shape[0]
-    if obstacles:
-        natural = (x.T.reshape(batch, n, -1), v.T.reshape(batch, n, -1))
-        v = project_contacts(obstacles, free, *natural, h).reshape(batch, dofs).T
-    return x + drift * v, v
+# `energysim.integrators.explicit.leapfrog`, looked up by `leapfrog` before its first compiled call:
+# `energysim.integrators` imports the objective, which imports this module, so not at import time
+_EXPLICIT: dict[str, Callable] = {}
 
 
 def _hessian_entries(
@@ -277,7 +132,7 @@ def _hessian_entries(
     batch, n, dim = x.shape
     flat = x.new_zeros(batch, length + 1)
     for term in terms:
-        if hasattr(term, "hessian_diagonal") and not term.is_linear:
+        if has_vertex_diagonal(term):
             diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
             flat[:, diagonal_positions] += diagonal
     for members, positions in groups:
@@ -290,15 +145,15 @@ def _hessian_entries(
 
 
 _SOURCES: dict[str, Callable] = {
-    "energy": _energy,
-    "energy_and_gradient": _energy_and_gradient,
-    "term_energies": _term_energies,
+    "energy": evaluation.total_energy,
+    "energy_and_gradient": evaluation.energy_and_gradient,
+    "term_energies": evaluation.term_energies,
     "hessian_entries": _hessian_entries,
-    "trial": _trial,
-    "cut_back": _cut_back,
+    "trial": evaluation.trial,
+    "cut_back": evaluation.cut_back,
     "leapfrog": _leapfrog,
-    "kick_batch_last": _kick_batch_last,
-    "viscous_kick_batch_last": _viscous_kick_batch_last,
+    "kick_batch_last": batch_last.kick_batch_last,
+    "viscous_kick_batch_last": batch_last.viscous_kick_batch_last,
 }
 # Inductor's C++ backend inlines an intermediate with a single consumer into that consumer's loop,
 # so a per-element quantity broadcast over a 12×12 block (the muscle's 3×3 fibre stiffness, the
@@ -397,39 +252,6 @@ def cut_back(
 # expressions, one kick per call: eight of them unrolled take minutes to compile, one takes
 # seconds, and its call's overhead is small beside the millisecond a batch of bodies takes.
 LEAPFROG_CHUNK = 8
-# Batches from this size on take the batch-last layout where every element term has
-# `batch_last_forces`: with fewer entries its vectors would run mostly empty.
-BATCH_LAST_MIN_BATCH = 8
-
-
-class BatchLastPlan(NamedTuple):
-    """How `leapfrog` kicks batch-last: the `elastic` terms, their `groups` (indices into
-    `elastic`) and the `dissipative` terms, each kicked by a compiled function of its own."""
-
-    elastic: tuple[EnergyTerm, ...]
-    groups: tuple[tuple[int, ...], ...]
-    dissipative: tuple[EnergyTerm, ...]
-
-
-def batch_last_plan(terms: Sequence[EnergyTerm]) -> BatchLastPlan | None:
-    """For batch-last kicks: the terms with `batch_last_forces` grouped by equal `element_vertices`
-    (`_element_groups`), and the dissipative terms (`batch_last_dissipation_gradient`); None where
-    another term is neither linear with a closed-form gradient (gravity) nor one of those."""
-    dissipative = tuple(term for term in terms if is_dissipative(term))
-    elastic = tuple(term for term in terms if not is_dissipative(term))
-    groups = tuple(
-        tuple(group) for group in _element_groups(elastic, lambda term: hasattr(term, "batch_last_forces"))
-    )
-    grouped = {index for group in groups for index in group}
-    for index, term in enumerate(elastic):
-        closed_form = type(term).value_and_gradient is not EnergyTerm.value_and_gradient
-        if index not in grouped and not (term.is_linear and closed_form):
-            return None
-    if not all(hasattr(term, "batch_last_dissipation_gradient") for term in dissipative):
-        return None
-    return BatchLastPlan(elastic, groups, dissipative)
-
-
 def leapfrog(
     terms: Sequence[EnergyTerm],
     obstacles: Sequence[EnergyTerm],
@@ -445,6 +267,10 @@ def leapfrog(
     velocities (`project_contacts`), by compiled calls of unrolled substeps (`inverse_mass` `[n]`
     zero on pinned vertices), or None. Batches of `BATCH_LAST_MIN_BATCH` or more run batch-last
     (`batch_last_plan`) where the terms allow it."""
+    if not _EXPLICIT:
+        from energysim.integrators.explicit import leapfrog as explicit_leapfrog  # noqa: PLC0415
+
+        _EXPLICIT["leapfrog"] = explicit_leapfrog
     step = torch.tensor(h, dtype=x.dtype, device=x.device)  # a tensor: a new h is no new graph
     batch = x.shape[0]
     plan = batch_last_plan(terms) if batch >= BATCH_LAST_MIN_BATCH else None
@@ -495,33 +321,6 @@ def _leapfrog_batch_last(
     return x.T.reshape(batch, n, dim), v.T.reshape(batch, n, dim)
 
 
-_GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
-
-
-def _element_groups(
-    terms: Sequence[EnergyTerm], member: Callable[[EnergyTerm], bool] = has_element_blocks
-) -> list[tuple[int, ...]]:
-    """The indices of the terms that are `member`s (default: those with element blocks), grouped by
-    equal `element_vertices` (a muscle term on every element of the mesh shares the elastic term's
-    elements): one gather and one scatter per group. Cached per tuple of vertex tensors."""
-    members = [index for index, term in enumerate(terms) if member(term)]
-    vertices = [terms[index].element_vertices for index in members]
-
-    def build() -> list[list[int]]:
-        groups: list[list[int]] = []
-        for position, tensor in enumerate(vertices):
-            for group in groups:
-                first = vertices[group[0]]
-                if first is tensor or (first.shape == tensor.shape and torch.equal(first, tensor)):
-                    group.append(position)
-                    break
-            else:
-                groups.append([position])
-        return groups
-
-    return [tuple(members[position] for position in group) for group in _GROUPS.get(vertices, None, build)]
-
-
 def dense_hessian(
     terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor
 ) -> Tensor | None:
@@ -530,7 +329,7 @@ def dense_hessian(
     batch, n, dim = x.shape
     size = n * dim
     groups = []
-    for members in _element_groups(terms):
+    for members in element_groups(terms):
         dofs = dof_indices(terms[members[0]].element_vertices, dim)
         groups.append((members, (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)))
     diagonal = torch.arange(size, device=x.device) * (size + 1)
@@ -554,7 +353,7 @@ def band_hessian(
     batch, n, dim = x.shape
     groups = tuple(
         (members, band_positions(layout, terms[members[0]].element_vertices, dim))
-        for members in _element_groups(terms)
+        for members in element_groups(terms)
     )
     diagonal = band_diagonal_positions(layout)
     flat = call("hessian_entries", tuple(terms), action, x, groups, diagonal, band_length(layout))

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, has_vertex_diagonal
 from energysim.linalg.assembly import SparsityPattern, assemble, cached_pattern
 from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
 
@@ -84,10 +84,9 @@ def autograd_element_hessian(term: ElementEnergy, x: Tensor, action: Tensor | No
 
 def element_hessian(term: ElementEnergy, x: Tensor, action: Tensor | None) -> Tensor:
     """Per-element Hessian blocks `[B, m, k·d, k·d]`: the term's closed form if it has one, else autograd."""
-    kernel = getattr(term, "element_hessian", None)
-    if kernel is not None:
+    if term.has_hessian_kernel:
         with torch.no_grad():
-            return kernel(x[:, term.element_vertices], action)
+            return term.element_hessian(x[:, term.element_vertices], action)
     return autograd_element_hessian(term, x, action)
 
 
@@ -214,7 +213,7 @@ def hessian_operator(
     for term in terms:
         if term.is_linear:
             continue
-        if hasattr(term, "hessian_diagonal"):
+        if has_vertex_diagonal(term):
             diagonal = term.hessian_diagonal() if diagonal is None else diagonal + term.hessian_diagonal()
         elif use_element_blocks and has_element_blocks(term):
             block = element_hessian(term, x, action)

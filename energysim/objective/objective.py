@@ -11,7 +11,8 @@ from torch import Tensor
 from energysim.energies.base import EnergyTerm, has_element_blocks
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.objective import compiled as compiled_functions
-from energysim.objective.derivatives import HessianOperator, energy_and_gradient, hessian_operator
+from energysim.objective import evaluation
+from energysim.objective.derivatives import HessianOperator, hessian_operator
 
 
 @dataclass(frozen=True)
@@ -88,20 +89,14 @@ class Objective:
         with torch.no_grad():
             return self._total(x)
 
-    def _at(self, term: EnergyTerm, x: Tensor) -> Tensor:
-        return x - self.anchor if term.is_linear and self.anchor is not None else x
-
-    def _total(self, x: Tensor, terms: Sequence[EnergyTerm] | None = None) -> Tensor:
-        total = x.new_zeros(x.shape[0])
-        for term in self.terms if terms is None else terms:
-            total = total + term(self._at(term, x), self.action)
-        return total
+    def _total(self, x: Tensor) -> Tensor:
+        return evaluation.total_energy(self.terms, self.anchor, self.action, x)
 
     def energy_and_gradient(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """E(x) `[B]` in J and ∇E(x) `[B, n, d]` in N, zero on fixed vertices.
 
-        Terms with closed-form kernels (`value_and_gradient`) skip autograd; the rest share one
-        backward pass.
+        Terms with closed-form kernels (`has_gradient_kernel`) skip autograd; the rest share one
+        backward pass (`energysim.objective.evaluation.energy_and_gradient`).
         """
         self.grad_evals += 1
         if self._compiles():
@@ -110,21 +105,7 @@ class Objective:
             )
             if result is not None:
                 return result
-        total = x.new_zeros(x.shape[0])
-        gradient = torch.zeros_like(x)
-        others = []
-        for term in self.terms:
-            result = term.value_and_gradient(self._at(term, x), self.action)
-            if result is None:
-                others.append(term)
-            else:
-                total = total + result[0]
-                gradient = gradient + result[1]
-        if others:
-            value, rest = energy_and_gradient(lambda y: self._total(y, others), x)
-            total = total + value
-            gradient = gradient + rest
-        return total, gradient * self.free[:, None].to(gradient.dtype)
+        return evaluation.energy_and_gradient(self.terms, self.anchor, self.action, self.free, x)
 
     def residual(self, gradient: Tensor) -> Tensor:
         """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""
@@ -162,18 +143,12 @@ class Objective:
                 if not bool(torch.isfinite(trial.step).all()):
                     self.max_step(x, direction)  # raises where x is not admissible
                 return trial
-        step = self.max_step(x, direction)
-        trial_x = x + step[:, None, None] * direction
-        energy, trial_gradient = self.energy_and_gradient(trial_x)
-        return LineTrial(
-            step,
-            trial_x,
-            energy,
-            trial_gradient,
-            (gradient * direction).sum(dim=(-1, -2)),
-            (trial_gradient * direction).sum(dim=(-1, -2)),
-            self.residual(trial_gradient),
-        )
+        self.grad_evals += 1
+        arguments = (self.terms, self.anchor, self.action, self.free, self.residual_scale)
+        trial = LineTrial(*evaluation.trial(*arguments, x, direction, gradient))
+        if not bool(torch.isfinite(trial.step).all()):
+            self.max_step(x, direction)  # raises where x is not admissible
+        return trial
 
     def cut_back(self, origin: Tensor, targets: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
         """Each of `targets` (`[B, n, d]` each) moved back towards `origin` to the largest admissible
@@ -191,13 +166,12 @@ class Objective:
                 if not bool(torch.isfinite(limits).all()):
                     self.max_step(origin, targets[0] - origin)  # raises where origin is not admissible
                 return cuts, energies
-        cuts = []
-        for target in targets:
-            motion = target - origin
-            cuts.append(origin + self.max_step(origin, motion)[:, None, None] * motion)
         with torch.no_grad():
-            energies = [self._total(x) for x in (origin, *cuts)]
-        return torch.stack(cuts), torch.stack(energies)
+            arguments = (self.terms, self.anchor, self.action)
+            cuts, energies, limits = evaluation.cut_back(*arguments, origin, targets)
+        if not bool(torch.isfinite(limits).all()):
+            self.max_step(origin, targets[0] - origin)  # raises where origin is not admissible
+        return cuts, energies
 
     def element_groups(self) -> list[Tensor]:
         """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from energysim.energies.base import VertexDiagonalEnergy
 from energysim.objective.objective import Objective
 from energysim.solvers.arguments import require_integer
 from energysim.solvers.base import Solver, SolverResult
@@ -23,7 +24,7 @@ def _initial_inverse_hessian(objective: Objective, x: Tensor) -> Tensor:
     exact inverse Hessian, which dominates at small steps), else h/m (scaled by the first step)."""
     diagonal = None
     for term in objective.terms:
-        if hasattr(term, "hessian_diagonal"):
+        if isinstance(term, VertexDiagonalEnergy):
             value = term.hessian_diagonal()
             diagonal = value if diagonal is None else diagonal + value
     if diagonal is None:

@@ -1,0 +1,143 @@
+"""The evaluations of a step objective, as pure functions of its terms: one definition each.
+
+`Objective` calls them eagerly; `energysim.objective.compiled` compiles these same functions with
+`torch.compile` (wrapped, never copied), so a compiled evaluation computes what the eager one does.
+The step limits they return are unchecked (NaN where a state is not admissible, no data-dependent
+branch); the caller checks them (`Objective.max_step`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from energysim.energies.base import EnergyTerm, has_element_blocks
+from energysim.linalg.caching import IdentityCache
+from energysim.objective.derivatives import energy_and_gradient as autograd_energy_and_gradient
+
+
+def shifted(term: EnergyTerm, x: Tensor, anchor: Tensor | None) -> Tensor:
+    """Where `term` is evaluated: linear terms (gravity) at x − anchor, which keeps their rounding
+    proportional to the displacement (`Objective.anchor`), the others at `x` `[B, n, d]`."""
+    return x - anchor if term.is_linear and anchor is not None else x
+
+
+def total_energy(
+    terms: Sequence[EnergyTerm], anchor: Tensor | None, action: Tensor | None, x: Tensor
+) -> Tensor:
+    """Σ_i E_i(x), shape `[B]`, in J."""
+    total = x.new_zeros(x.shape[0])
+    for term in terms:
+        total = total + term(shifted(term, x, anchor), action)
+    return total
+
+
+def term_energies(terms: Sequence[EnergyTerm], action: Tensor | None, x: Tensor) -> Tensor:
+    """Every term's E_i(x) at `x` itself (no anchor), `[len(terms), B]`, in J."""
+    return torch.stack([term(x, action) for term in terms])
+
+
+def energy_and_gradient(
+    terms: Sequence[EnergyTerm], anchor: Tensor | None, action: Tensor | None, free: Tensor, x: Tensor
+) -> tuple[Tensor, Tensor]:
+    """E(x) `[B]` in J and ∇E(x) `[B, n, d]` in N, zero on fixed vertices (`free` `[n]` bool).
+
+    Terms that declare `has_gradient_kernel` give theirs in closed form; the rest share one
+    backward pass (never traced by the compiled functions, which take only terms with kernels).
+    """
+    total = x.new_zeros(x.shape[0])
+    gradient = torch.zeros_like(x)
+    others = []
+    for term in terms:
+        if term.has_gradient_kernel:
+            value, term_gradient = term.value_and_gradient(shifted(term, x, anchor), action)
+            total = total + value
+            gradient = gradient + term_gradient
+        else:
+            others.append(term)
+    if others:
+        value, rest = autograd_energy_and_gradient(lambda y: total_energy(others, anchor, action, y), x)
+        total = total + value
+        gradient = gradient + rest
+    return total, gradient * free[:, None].to(gradient.dtype)
+
+
+def step_limit(terms: Sequence[EnergyTerm], x: Tensor, direction: Tensor) -> Tensor:
+    """The largest fraction of `direction` every term allows from `x`, `[B]`, at most 1, unchecked
+    (`EnergyTerm.step_limit`): NaN where `x` is not admissible."""
+    limit = x.new_ones(x.shape[0])
+    for term in terms:
+        term_limit = term.step_limit(x, direction)
+        if term_limit is not None:
+            limit = torch.minimum(limit, term_limit)
+    return limit
+
+
+def trial(
+    terms: Sequence[EnergyTerm],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    free: Tensor,
+    residual_scale: Tensor,
+    x: Tensor,
+    direction: Tensor,
+    gradient: Tensor,
+) -> tuple[Tensor, ...]:
+    """A line search's first trial from `x` along `direction` (`gradient` = ∇E(x)): the unchecked
+    step limit `[B]`, where it lands `[B, n, d]`, E `[B]` and ∇E `[B, n, d]` there, the slopes of E
+    along `direction` at both ends `[B]`, and the velocity residual there `[B]` (`LineTrial`)."""
+    limit = step_limit(terms, x, direction)
+    trial_x = x + limit[:, None, None] * direction
+    energy, trial_gradient = energy_and_gradient(terms, anchor, action, free, trial_x)
+    slope = (gradient * direction).sum(dim=(-1, -2))
+    trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
+    residual = (trial_gradient * residual_scale[:, None]).abs().amax(dim=(-1, -2))
+    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual
+
+
+def cut_back(
+    terms: Sequence[EnergyTerm],
+    anchor: Tensor | None,
+    action: Tensor | None,
+    origin: Tensor,
+    targets: Sequence[Tensor],
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Each target moved back towards `origin` to its unchecked step limit, `[k, B, n, d]`; E at
+    `origin` and at every cut, `[k + 1, B]`; and the limits, `[k, B]`."""
+    energies, cuts, limits = [total_energy(terms, anchor, action, origin)], [], []
+    for target in targets:
+        motion = target - origin
+        limit = step_limit(terms, origin, motion)
+        cuts.append(origin + limit[:, None, None] * motion)
+        energies.append(total_energy(terms, anchor, action, cuts[-1]))
+        limits.append(limit)
+    return torch.stack(cuts), torch.stack(energies), torch.stack(limits)
+
+
+_GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
+
+
+def element_groups(
+    terms: Sequence[EnergyTerm], member: Callable[[EnergyTerm], bool] = has_element_blocks
+) -> list[tuple[int, ...]]:
+    """The indices of the terms that are `member`s (default: those with element blocks), grouped by
+    equal `element_vertices` (a muscle term on every element of the mesh shares the elastic term's
+    elements): one gather and one scatter per group. Cached per tuple of vertex tensors."""
+    members = [index for index, term in enumerate(terms) if member(term)]
+    vertices = [terms[index].element_vertices for index in members]
+
+    def build() -> list[list[int]]:
+        groups: list[list[int]] = []
+        for position, tensor in enumerate(vertices):
+            for group in groups:
+                first = vertices[group[0]]
+                if first is tensor or (first.shape == tensor.shape and torch.equal(first, tensor)):
+                    group.append(position)
+                    break
+            else:
+                groups.append([position])
+        return groups
+
+    return [tuple(members[position] for position in group) for group in _GROUPS.get(vertices, None, build)]
