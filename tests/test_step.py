@@ -180,13 +180,19 @@ def test_a_batch_drops_converged_entries_and_still_equals_its_entries_solved_alo
     resting = torch.zeros_like(thrown)
     start = torch.stack([scene.initial_state(velocities=v) for v in (resting, resting, thrown, resting)])
     rows = []
-    evaluate = es.Objective.energy_and_gradient
+    evaluate, line_trial = es.Objective.energy_and_gradient, es.Objective.trial
 
     def counting(self, x):
         rows.append(x.shape[0])
         return evaluate(self, x)
 
+    def counting_trial(self, x, direction, gradient):
+        rows.append(x.shape[0])
+        return line_trial(self, x, direction, gradient)
+
+    # every gradient a solve takes, at a point or at a line search's first trial, counts its rows
     monkeypatch.setattr(es.Objective, "energy_and_gradient", counting)
+    monkeypatch.setattr(es.Objective, "trial", counting_trial)
 
     def run(solver: es.NewtonCG) -> tuple[torch.Tensor, int]:
         rows.clear()
