@@ -135,7 +135,7 @@ class Row:
 def run(
     steps: int, warmup: int, compile_too: bool, cells: tuple[int, int, int], rounds: int = 3
 ) -> list[Row]:
-    """Time every configuration, interleaved step by step, in `rounds` rounds from rest (fresh scenes
+    """Time every configuration, interleaved step by step, in `rounds` rounds from rest (fresh states
     and solvers each); a row's time is the median over rounds of the round's median step. Rows in the
     order of `CONFIGURATIONS`, the error and iterations from the last round."""
     modes = [False, True] if compile_too else [False]
@@ -143,8 +143,9 @@ def run(
     round_medians: dict[tuple[str, bool], list[float]] = {key: [] for key in keys}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", es.ConvergenceWarning)
+        # the same scenes every round: a new scene would compile anew
+        runs = {key: build_scene(CONFIGURATIONS[key[0]](), cells) for key in keys}
         for _ in range(rounds):
-            runs = {key: build_scene(CONFIGURATIONS[key[0]](), cells) for key in keys}
             states = {key: scene.initial_state() for key, scene in runs.items()}
             solvers = {key: es.NewtonCG(tol=1e-5, compile=key[1]) for key in runs}
             times: dict[tuple[str, bool], list[float]] = {key: [] for key in runs}
