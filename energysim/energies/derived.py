@@ -211,7 +211,8 @@ def _run_kernel(name: str, term: DensityEnergy, element_positions: Tensor, alway
     if key not in _FAILED and (always or term._compiles_derivatives(elements)):
         if key not in _COMPILED:
             options = _CPU_OPTIONS.get(name) if key[1] == "cpu" else None
-            _COMPILED[key] = torch.compile(_KERNELS[name], options=options)
+            # static shapes: forward-mode derivatives do not trace with symbolic sizes
+            _COMPILED[key] = torch.compile(_KERNELS[name], options=options, dynamic=False)
         try:
             with torch.no_grad():
                 return _COMPILED[key](term, element_positions)
