@@ -132,29 +132,35 @@ class Row:
     iterations: float  # mean Newton iterations per timed step
 
 
-def run(steps: int, warmup: int, compile_too: bool, cells: tuple[int, int, int]) -> list[Row]:
-    """Time every configuration, interleaved step by step; rows in the order of `CONFIGURATIONS`."""
+def run(
+    steps: int, warmup: int, compile_too: bool, cells: tuple[int, int, int], rounds: int = 3
+) -> list[Row]:
+    """Time every configuration, interleaved step by step, in `rounds` rounds from rest (fresh states
+    and solvers each); a row's time is the median over rounds of the round's median step. Rows in the
+    order of `CONFIGURATIONS`, the error and iterations from the last round."""
     modes = [False, True] if compile_too else [False]
-    runs = {
-        (name, compiled): build_scene(make(), cells)
-        for name, make in CONFIGURATIONS.items()
-        for compiled in modes
-    }
-    states = {key: scene.initial_state() for key, scene in runs.items()}
-    solvers = {key: es.NewtonCG(tol=1e-5, compile=key[1]) for key in runs}
-    times: dict[tuple[str, bool], list[float]] = {key: [] for key in runs}
-    iterations: dict[tuple[str, bool], list[int]] = {key: [] for key in runs}
+    keys = [(name, compiled) for name in CONFIGURATIONS for compiled in modes]
+    round_medians: dict[tuple[str, bool], list[float]] = {key: [] for key in keys}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", es.ConvergenceWarning)
-        for k in range(warmup + steps):
-            for key, scene in runs.items():
-                start = time.perf_counter()
-                result = es.step(scene, states[key], solver=solvers[key])
-                elapsed = time.perf_counter() - start
-                states[key] = result.state
-                if k >= warmup:
-                    times[key].append(elapsed)
-                    iterations[key].append(result.stats.iterations)
+        # the same scenes every round: a new scene would compile anew
+        runs = {key: build_scene(CONFIGURATIONS[key[0]](), cells) for key in keys}
+        for _ in range(rounds):
+            states = {key: scene.initial_state() for key, scene in runs.items()}
+            solvers = {key: es.NewtonCG(tol=1e-5, compile=key[1]) for key in runs}
+            times: dict[tuple[str, bool], list[float]] = {key: [] for key in runs}
+            iterations: dict[tuple[str, bool], list[int]] = {key: [] for key in runs}
+            for k in range(warmup + steps):
+                for key, scene in runs.items():
+                    start = time.perf_counter()
+                    result = es.step(scene, states[key], solver=solvers[key])
+                    elapsed = time.perf_counter() - start
+                    states[key] = result.state
+                    if k >= warmup:
+                        times[key].append(elapsed)
+                        iterations[key].append(result.stats.iterations)
+            for key in keys:
+                round_medians[key].append(statistics.median(times[key]))
         references = {}
         for name, make in CONFIGURATIONS.items():
             if PHYSICS[name] == name:
@@ -163,11 +169,11 @@ def run(steps: int, warmup: int, compile_too: bool, cells: tuple[int, int, int])
                 for _ in range(warmup + steps):
                     state = es.step(scene, state, solver=es.NewtonCG(tol=REFERENCE_TOL)).state
                 references[name] = scene.split_state(state)[0]
-    baseline = statistics.median(times[("neo-hookean", False)])
+    baseline = statistics.median(round_medians[("neo-hookean", False)])
     rows = []
-    for (name, compiled), scene in runs.items():
-        x = scene.split_state(states[(name, compiled)])[0]
-        median = statistics.median(times[(name, compiled)])
+    for name, compiled in keys:
+        x = runs[(name, compiled)].split_state(states[(name, compiled)])[0]
+        median = statistics.median(round_medians[(name, compiled)])
         rows.append(
             Row(
                 configuration=name,
@@ -204,14 +210,15 @@ def check(rows: list[Row]) -> None:
 def main(argv: list[str] | None = None) -> list[Row]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed steps first (compilation)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed steps per round (compilation)")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds from rest; medians over rounds")
     parser.add_argument("--cells", type=int, nargs=3, default=(20, 4, 4), help="cells along x, y, z")
     parser.add_argument("--no-compile", action="store_true", help="eager configurations only")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--out", type=Path, default=None, help="folder for bench_user_term.csv")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    rows = run(args.steps, args.warmup, not args.no_compile, tuple(args.cells))
+    rows = run(args.steps, args.warmup, not args.no_compile, tuple(args.cells), args.rounds)
     print(table(rows))
     check(rows)
     if args.out is not None:

@@ -9,9 +9,10 @@ import pytest
 import torch
 
 import energysim as es
+from energysim.energies import derived
 from energysim.energies.derived import density_stiffness, density_stress
 from energysim.fem.materials import cofactor_matrix, lame_parameters, stable_neo_hookean_density
-from energysim.objective.derivatives import autograd_element_hessian
+from energysim.objective.derivatives import autograd_element_hessian, hessian_operator
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -235,3 +236,75 @@ def test_a_compiled_step_with_the_user_density_equals_the_eager_one():
         compiled = es.step(scene, state, solver=es.NewtonCG(tol=1e-11, compile=True))
     assert compiled.stats.converged
     assert torch.allclose(compiled.state, eager.state, rtol=0, atol=1e-10)
+
+
+class CompiledVolume(VolumePreservation):
+    """The volume term with its derived kernels compiled on every eager call."""
+
+    compile_derivatives = True
+
+
+def test_the_compiled_derived_kernels_equal_the_eager_ones():
+    if not _compiler_works():
+        pytest.skip("torch.compile is not available here")
+    compiled, eager = CompiledVolume(2e5), VolumePreservation(2e5)
+    x = _deformed(_bound(compiled))
+    _bound(eager)
+    corners = x[:, compiled.element_vertices]
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="torch.compile could not compile")
+        energy, gradient = compiled.element_energy_and_gradient(corners, None)
+        blocks = compiled.element_hessian(corners, None)
+    kernels = {("energy_and_gradient", "cpu", CompiledVolume), ("hessian", "cpu", CompiledVolume)}
+    assert kernels <= set(derived._COMPILED)
+    expected_energy, expected_gradient = eager.element_energy_and_gradient(corners, None)
+    assert _relative(energy, expected_energy) < DERIVED_RTOL
+    assert _relative(gradient, expected_gradient) < DERIVED_RTOL
+    assert _relative(blocks, autograd_element_hessian(eager, x, None)) < DERIVED_RTOL
+
+
+def test_a_kernel_that_does_not_compile_falls_back_to_the_eager_derivation_with_one_warning(monkeypatch):
+    def failing(*args: object, **kwargs: object) -> object:
+        def call(*args: object) -> object:
+            raise RuntimeError("no C++ compiler")
+
+        return call
+
+    monkeypatch.setattr(derived, "_COMPILED", {})
+    monkeypatch.setattr(derived, "_FAILED", set())
+    monkeypatch.setattr(torch, "compile", failing)
+    term, reference = CompiledVolume(2e5), VolumePreservation(2e5)
+    x = _deformed(_bound(term))
+    _bound(reference)
+    corners = x[:, term.element_vertices]
+    with pytest.warns(RuntimeWarning, match=r"derived hessian kernel of CompiledVolume .*no C\+\+ compiler"):
+        blocks = term.element_hessian(corners, None)
+    assert torch.equal(blocks, reference.element_hessian(corners, None))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once: the eager derivation serves from now on
+        assert torch.equal(term.element_hessian(corners, None), blocks)
+
+
+def test_small_meshes_keep_the_eager_derivation(monkeypatch):
+    # 40 tets: a compilation could never pay for itself, however often the term is called
+    monkeypatch.setattr(derived, "_COMPILED", {})
+    term = VolumePreservation(2e5)
+    x = _deformed(_bound(term))
+    for _ in range(derived.COMPILE_AFTER_CALLS + 2):
+        term.element_hessian(x[:, term.element_vertices], None)
+    assert derived._COMPILED == {}
+
+
+def test_blocks_of_terms_on_the_same_elements_are_summed_into_one_group():
+    volume, elastic = VolumePreservation(2e5), es.NeoHookean(1e5, 0.3)
+    scene = _bound(volume)
+    scene.add(elastic)
+    x = _deformed(scene)
+    free = torch.ones(scene.num_vertices, dtype=torch.bool)
+    together = hessian_operator([volume, elastic], x, None, free)
+    assert len(together.blocks) == 1
+    apart = [hessian_operator([term], x, None, free) for term in (volume, elastic)]
+    expected = apart[0].dense(x) + apart[1].dense(x)
+    assert _relative(together.dense(x), expected) < DERIVED_RTOL
+    v = torch.randn_like(x)
+    assert _relative(together.matvec(v), apart[0].matvec(v) + apart[1].matvec(v)) < DERIVED_RTOL

@@ -186,6 +186,20 @@ class HessianOperator:
         return cached_pattern([elements for elements, _ in self.blocks], n, dim, batch)
 
 
+def _same_elements(a: Tensor, b: Tensor) -> bool:
+    return a is b or (a.shape == b.shape and a.device == b.device and bool(torch.equal(a, b)))
+
+
+def _add_blocks(blocks: list[tuple[Tensor, Tensor]], element_vertices: Tensor, block: Tensor) -> None:
+    # Terms on the same elements (a user's term beside the elastic one on every tet) share one
+    # group: their blocks are summed here, and the matrix is assembled from one scatter per group.
+    for index, (vertices, existing) in enumerate(blocks):
+        if _same_elements(vertices, element_vertices):
+            blocks[index] = (vertices, existing + block)
+            return
+    blocks.append((element_vertices, block))
+
+
 def hessian_operator(
     terms: Sequence[EnergyTerm],
     x: Tensor,
@@ -217,7 +231,8 @@ def hessian_operator(
             diagonal = term.hessian_diagonal() if diagonal is None else diagonal + term.hessian_diagonal()
         elif use_element_blocks and has_element_blocks(term):
             block = element_hessian(term, x, action)
-            blocks.append((term.element_vertices, project_positive_semidefinite(block) if project else block))
+            block = project_positive_semidefinite(block) if project else block
+            _add_blocks(blocks, term.element_vertices, block)
         else:
             others.append(term)
     extra = []
