@@ -299,9 +299,15 @@ class SimplexMesh:
         shape `[s, 2]`, traversing the boundary counter-clockwise, so the outward normal is the segment
         direction rotated by -90 degrees.
         """
+        return self.surface_with_elements()[0]
+
+    def surface_with_elements(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """`surface()` and the element each facet bounds, shape `[s]`, int64."""
         local = _TET_FACES if self.dim == 3 else _TRI_EDGES
         facets = self.elements[:, local].reshape(-1, self.dim)
-        return facets[_row_counts(facets.sort(dim=1).values) == 1].contiguous()
+        boundary = _row_counts(facets.sort(dim=1).values) == 1
+        owner = torch.arange(self.num_elements).repeat_interleave(len(local))
+        return facets[boundary].contiguous(), owner[boundary]
 
     def surface_vertices(self) -> torch.Tensor:
         """Sorted unique indices of the vertices on the boundary, shape `[k]`."""
