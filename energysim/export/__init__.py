@@ -1,4 +1,4 @@
-"""Export of simulation results: VTK frames and ``.pvd`` time series, PNG pictures, GIF/MP4 animations.
+"""Export of simulation results: VTK frames, ``.pvd`` and XDMF time series, PNG pictures, GIF/MP4 animations.
 
 Nothing here imports the solver: `write_vtu`, `VTKSeries` and the render functions take plain arrays
 (torch tensors or numpy arrays); `export_rollout` reads a scene's terms to name what its states mean

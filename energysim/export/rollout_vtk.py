@@ -1,10 +1,12 @@
-"""Any rollout of a scene as a VTK time series: positions, velocities, strain energy and activations.
+"""Any rollout of a scene as a VTK time series: positions, velocities, strain energy, stress, contact
+force, activations, and the obstacles beside it.
 
     pvd = export_rollout(scene, states, "out/run", actions=actions)   # open the .pvd in ParaView
 
-The arrays come from the scene's own terms: strain energy density from its `NeoHookean` terms,
-activation from its `FibreMuscles` (per element) and `ActuatedSprings` (per vertex). Nothing here
-steps the scene: it reads states that a rollout already produced.
+The arrays come from the scene's own terms: strain energy density and stress from its `NeoHookean`
+terms, contact force from its obstacles, activation from its `FibreMuscles` (per element) and
+`ActuatedSprings` (per vertex). Nothing here steps the scene: it reads states that a rollout already
+produced.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ from energysim.energies import ActuatedSprings, NeoHookean
 from energysim.energies.fibre_muscles import FibreMuscles
 from energysim.viewer.scalars import strain_energy_density
 
-from .series import VTKSeries
+from .fields import STRESS_FIELD_NAMES, STRESS_MEASURES, element_stress, vertex_contact_force
+from .obstacle_geometry import obstacle_surfaces
+from .series import SINGLE_FILE_FORMATS, VTKSeries
 
 if TYPE_CHECKING:
     from energysim.model.scene import Scene
@@ -123,14 +127,27 @@ def export_rollout(
     times: Tensor | Sequence[float] | None = None,
     every: int = 1,
     name: str = "frame",
+    stress: str | None = "cauchy",
+    surface_only: bool = False,
+    single_file: str | None = None,
 ) -> Path:
     """Write states of `scene` as ``{name}_00000.vtu``, … and ``{name}.pvd`` in `folder`; return the ``.pvd``.
 
     Each ``.vtu`` holds the positions (the points, in m) with point data ``velocity`` (m/s) and
-    ``displacement`` from the rest shape (m), and when the scene has the terms for them cell data
-    ``strain_energy_density`` (J/m³, J/m² per metre of depth in 2D; `NeoHookean`), ``actuator`` and
-    ``activation`` (`FibreMuscles`; actuator −1: passive) and point data ``spring_activation``
-    (`ActuatedSprings`). Activations need `actions`; without them they are left out.
+    ``displacement`` from the rest shape (m), field data ``TimeValue`` (the frame's time in s, which
+    ParaView shows), and when the scene has the terms for them cell data ``strain_energy_density``
+    (J/m³, J/m² per metre of depth in 2D; `NeoHookean`), ``cauchy_stress`` or ``first_piola_stress``
+    (Pa, 9 components, row-major 3×3; `NeoHookean`, see `energysim.export.fields.element_stress`),
+    ``actuator`` and ``activation`` (`FibreMuscles`; actuator −1: passive), and point data
+    ``contact_force`` (N, the obstacles' barrier force) and ``spring_activation`` (`ActuatedSprings`).
+    Activations need `actions`; without them they are left out.
+
+    When the scene has obstacles (ground, half-spaces, spheres, boxes) they are written once, as static
+    triangles with cell data ``obstacle`` (their order among the scene's obstacle terms), into a second
+    series ``{name}_obstacles.pvd`` of one frame at the first time: open both ``.pvd`` files in ParaView
+    (a static part shows at every time and keeps the body's colour map free of it). A half-space is a
+    rectangle around the range the body covers over the frames (see
+    `energysim.export.obstacle_geometry`).
 
     The frames go into a new folder ``{name}.<random>/`` beside the ``.pvd`` (see
     `energysim.export.series`); the ``.pvd`` is switched to them in one atomic rename once all are on
@@ -149,10 +166,19 @@ def export_rollout(
         times: time of each state in s, shape `[F]`, strictly increasing; default k · `scene.dt`.
         every: write every `every`-th state, and always the last.
         name: file stem.
+        stress: "cauchy" (σ, ``cauchy_stress``), "first_piola" (P, ``first_piola_stress``) or None (no
+            stress field).
+        surface_only: write only the boundary triangles (`mesh.surface()`) and their vertices, with the
+            point fields restricted to them and each triangle carrying the cell fields of its element
+            (3D meshes only): smaller files, the same picture.
+        single_file: "xdmf": also write the series as ``{name}.xdmf`` beside the ``.pvd`` (one XDMF file,
+            its arrays in one HDF5 file; needs h5py), published with the ``.pvd``; None: no such file.
 
     Raises:
         ValueError: no states, states, actions or times of the wrong shape, non-finite states, actions
-            or times, `every` < 1.
+            or times, `every` < 1, an unknown `stress` or `single_file`, `surface_only` not a bool or
+            for a 2D mesh.
+        ImportError: `single_file="xdmf"` without h5py.
         NotADirectoryError: `folder` (or a folder above it) is a file.
         PermissionError: `folder` cannot be written.
     """
@@ -167,6 +193,16 @@ def export_rollout(
         raise ValueError("states is empty: nothing to export")
     if not (isinstance(every, int) and every >= 1):
         raise ValueError(f"every must be an integer >= 1, got {every!r}")
+    if stress is not None and stress not in STRESS_MEASURES:
+        raise ValueError(f"stress must be one of {STRESS_MEASURES} or None, got {stress!r}")
+    if not isinstance(surface_only, bool):
+        raise ValueError(f"surface_only must be True or False, got {surface_only!r}")
+    if surface_only and scene.dim != 3:
+        raise ValueError(
+            "surface_only needs a 3D mesh (its boundary is triangles); a 2D mesh is drawn whole already"
+        )
+    if single_file not in SINGLE_FILE_FORMATS:
+        raise ValueError(f"single_file must be one of {SINGLE_FILE_FORMATS}, got {single_file!r}")
     if not (states.is_floating_point() or states.dtype in (torch.int32, torch.int64)):
         raise ValueError(f"states must be real numbers, got dtype {states.dtype}")
     states = states.to(scene.vertex_mass)
@@ -192,6 +228,13 @@ def export_rollout(
     point_data: dict[str, Tensor] = {}
     if any(isinstance(term, NeoHookean) for term in scene.terms):
         cell_data["strain_energy_density"] = strain_energy_density(scene, states)
+    if stress is not None:
+        element_stresses = element_stress(scene, x, stress)
+        if element_stresses is not None:
+            cell_data[STRESS_FIELD_NAMES[stress]] = element_stresses.reshape(frames, -1, 9)
+    contact_force = vertex_contact_force(scene, x)
+    if contact_force is not None:
+        point_data["contact_force"] = contact_force
     if actions is not None:
         per_state = _per_state_actions(_stack(actions, "actions").to(x), frames)
         if not torch.isfinite(per_state).all():
@@ -208,22 +251,35 @@ def export_rollout(
 
     written = sorted({*range(0, frames, every), frames - 1})
     rest = scene.rest_positions
-    series = VTKSeries(folder, scene.mesh.elements, name=name)
+    cells, keep_vertices, keep_cells = scene.mesh.elements, slice(None), slice(None)
+    if surface_only:
+        facets, owners = scene.mesh.surface_with_elements()
+        keep_vertices, cells = torch.unique(facets, return_inverse=True)
+        keep_cells = owners
+    obstacles = obstacle_surfaces(scene, x[written])
+    series = VTKSeries(folder, cells, name=name, single_file=single_file)
     with series:  # committed when every frame is on disk, discarded if anything goes wrong
         for k in written:
-            frame_cells = {key: value[k] for key, value in cell_data.items()}
+            frame_cells = {key: value[k][keep_cells] for key, value in cell_data.items()}
             if actuator is not None:
-                frame_cells["actuator"] = actuator
+                frame_cells["actuator"] = actuator[keep_cells]
+            frame_points = {
+                "velocity": v[k],
+                "displacement": x[k] - rest,
+                **{key: value[k] for key, value in point_data.items()},
+            }
             series.write(
                 time_values[k],
-                x[k],
-                point_data={
-                    "velocity": v[k],
-                    "displacement": x[k] - rest,
-                    **{key: value[k] for key, value in point_data.items()},
-                },
+                x[k][keep_vertices],
+                point_data={key: value[keep_vertices] for key, value in frame_points.items()},
                 cell_data=frame_cells,
+                field_data={"TimeValue": time_values[k]},
             )
+        if obstacles is not None:
+            points, triangles, owner = obstacles
+            # committed just before the body's series: a failure before then leaves both as they were
+            with VTKSeries(folder, triangles, name=f"{name}_obstacles") as static:
+                static.write(time_values[written[0]], points, cell_data={"obstacle": owner})
     return series.pvd_path
 
 

@@ -3,15 +3,18 @@
 Layout in `folder` for a series named ``frame``::
 
     frame.pvd                     the collection that ParaView and pyvista open
+    frame.xdmf                    with `single_file="xdmf"`: the same series as one XDMF file
     frame.k3j_x9a2/               the frames that frame.pvd lists, in a folder of their own
         .energysim-series.json    marks the folder as written by this library, for this series name
         frame_00000.vtu, frame_00001.vtu, ...
+        frame.h5                  with `single_file="xdmf"`: the arrays that frame.xdmf points to
 
 A series gets a fresh folder ``{name}.<random>/`` when it starts; its frames are written there (each
 atomically and flushed to disk). `VTKSeries.commit` then replaces ``{name}.pvd`` with one `os.replace`,
 so at every instant the ``.pvd`` lists either the complete previous series or the complete new one,
-whatever happens in between (an exception, a full disk, an interrupt, a killed process). Only after
-that switch are the previous series' frames removed.
+whatever happens in between (an exception, a full disk, an interrupt, a killed process); so does the
+``.xdmf``, written the same way just before the ``.pvd``. Only after that switch are the previous
+series' frames removed.
 
 Files are removed only from folders that carry the marker with this series' name, and there only the
 frames, their temporary files and the marker: anything else in the output folder (a user's
@@ -44,17 +47,21 @@ from typing import Any
 from .vtk import (
     apply_umask,
     atomic_output,
+    check_data,
     check_index_array,
+    check_vertices,
     fsync_folder,
     prepare_folder,
     to_numpy,
     write_pvd,
     write_vtu,
 )
+from .xdmf import XdmfWriter, require_h5py
 
 logger = logging.getLogger(__name__)
 
 MARKER_NAME = ".energysim-series.json"
+SINGLE_FILE_FORMATS = (None, "xdmf")
 _MARKER_FORMAT = "energysim.vtk_series"
 # Series folders of this process whose `VTKSeries` is still alive: another series must not take them
 # for the leftovers of a crash, although the marker names this (running) process.
@@ -64,8 +71,8 @@ _LIVE_FOLDERS: set[str] = set()
 def _frame_pattern(name: str) -> re.Pattern[str]:
     """Files the library writes into a series folder: frames and the temporaries of atomic writes."""
     stem = re.escape(name)
-    frames = rf"{stem}_\d{{5}}\.vtu|\.{stem}_\d{{5}}\..+\.tmp\.vtu"
-    return re.compile(rf"{frames}|\.{stem}\..+\.tmp\.pvd|\.\.energysim-series\..+\.tmp\.json")
+    frames = rf"{stem}_\d{{5}}\.vtu|\.{stem}_\d{{5}}\..+\.tmp\.vtu|{stem}\.h5"
+    return re.compile(rf"{frames}|\.{stem}\..+\.tmp\.(pvd|xdmf)|\.\.energysim-series\..+\.tmp\.json")
 
 
 def _read_marker(folder: Path) -> dict[str, Any] | None:
@@ -114,6 +121,22 @@ def _listed_folders(pvd_path: Path) -> set[Path]:
     return folders
 
 
+_XDMF_REFERENCE = re.compile(r">\s*([^<>/]+)/[^<>/]+\.h5:/")
+
+
+def _xdmf_folders(xdmf_path: Path) -> set[Path]:
+    """Direct subfolders of the xdmf's folder whose HDF5 file the ``.xdmf`` points to."""
+    if not xdmf_path.is_file():
+        return set()
+    try:
+        text = xdmf_path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        logger.warning("could not read %s (%s): the files it names are left alone", xdmf_path, err)
+        return set()
+    names = set(_XDMF_REFERENCE.findall(text)) - {".", ".."}
+    return {xdmf_path.parent / name for name in names}
+
+
 def _remove_series_folder(folder: Path, name: str) -> None:
     """Remove what the library wrote in a marked series folder of `name`; keep anything else.
 
@@ -150,17 +173,28 @@ class VTKSeries:
         folder: output folder (created with its parents).
         cells: connectivity `[m, 4]` (tetrahedra) or `[m, 3]` (triangles), shared by all frames.
         name: file stem: frames are ``{name}.<random>/{name}_{k:05d}.vtu``, the collection ``{name}.pvd``.
+        single_file: "xdmf": also write the series as ``{name}.xdmf`` beside the ``.pvd``, its arrays in
+            ``{name}.<random>/{name}.h5`` (needs h5py), published by `commit` with the ``.pvd``;
+            None: the ``.pvd`` only.
 
     Raises:
-        ValueError: a bad `name` or `cells`.
+        ValueError: a bad `name`, `cells` or `single_file`.
+        ImportError: `single_file="xdmf"` without h5py.
         NotADirectoryError: `folder` (or a folder above it) is a file.
         PermissionError: `folder` cannot be written.
     """
 
-    def __init__(self, folder: str | os.PathLike[str], cells: Any, name: str = "frame") -> None:
+    def __init__(
+        self, folder: str | os.PathLike[str], cells: Any, name: str = "frame", single_file: str | None = None
+    ) -> None:
         if not isinstance(name, str) or not name or any(s in name for s in ("/", "\\", os.sep)):
             raise ValueError(f"name must be a non-empty file stem without path separators, got {name!r}")
+        if single_file not in SINGLE_FILE_FORMATS:
+            raise ValueError(f"single_file must be one of {SINGLE_FILE_FORMATS}, got {single_file!r}")
+        if single_file == "xdmf":
+            require_h5py()
         self.cells = check_index_array(cells, None, (3, 4))
+        self.xdmf: XdmfWriter | None = None
         self.folder = prepare_folder(folder)
         self.name = name
         self.frames: list[tuple[float, Path]] = []
@@ -181,6 +215,8 @@ class VTKSeries:
             marker = {"format": _MARKER_FORMAT, "name": name, "pid": os.getpid(), "host": host}
             with atomic_output(self.series_folder / MARKER_NAME) as tmp:
                 tmp.write_text(json.dumps(marker, indent=1) + "\n", encoding="utf-8")
+            if single_file == "xdmf":
+                self.xdmf = XdmfWriter(self.series_folder / f"{name}.h5", self.cells)
         except BaseException:
             with contextlib.suppress(OSError):
                 (self.series_folder / MARKER_NAME).unlink(missing_ok=True)
@@ -191,6 +227,15 @@ class VTKSeries:
     def pvd_path(self) -> Path:
         """Path of the ``.pvd`` collection file."""
         return self.folder / f"{self.name}.pvd"
+
+    @property
+    def xdmf_path(self) -> Path:
+        """Path of the single-file series ``{name}.xdmf`` (written only with `single_file="xdmf"`)."""
+        return self.folder / f"{self.name}.xdmf"
+
+    def _referenced(self) -> set[Path]:
+        """Series folders that the published ``.pvd`` or ``.xdmf`` point to."""
+        return _listed_folders(self.pvd_path) | _xdmf_folders(self.xdmf_path)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -216,6 +261,7 @@ class VTKSeries:
         vertices: Any,
         point_data: Mapping[str, Any] | None = None,
         cell_data: Mapping[str, Any] | None = None,
+        field_data: Mapping[str, Any] | None = None,
     ) -> Path:
         """Write the next frame at ``time`` (strictly after the previous one) into the series' folder.
 
@@ -224,7 +270,8 @@ class VTKSeries:
         Args:
             time: simulation time of the frame (usually s); tensors of one element are accepted.
             vertices: positions `[n, 3]` or `[n, 2]`.
-            point_data, cell_data: as in :func:`write_vtu`.
+            point_data, cell_data, field_data: as in :func:`write_vtu` (the ``.xdmf`` leaves
+                field data out: its frames carry their time).
 
         Returns:
             The path of the frame's ``.vtu`` file.
@@ -240,7 +287,19 @@ class VTKSeries:
         if not (self.series_folder / MARKER_NAME).is_file():
             raise RuntimeError(f"the series folder {self.series_folder} is gone (discarded or replaced)")
         frame_path = self.series_folder / f"{self.name}_{len(self.frames):05d}.vtu"
-        write_vtu(frame_path, vertices, self.cells, point_data, cell_data)
+        write_vtu(frame_path, vertices, self.cells, point_data, cell_data, field_data)
+        if self.xdmf is not None:
+            points = check_vertices(vertices)
+            try:
+                self.xdmf.write(
+                    t,
+                    points,
+                    check_data(point_data, points.shape[0], "point"),
+                    check_data(cell_data, self.cells.shape[0], "cell"),
+                )
+            except BaseException:
+                frame_path.unlink(missing_ok=True)
+                raise
         self.frames.append((t, frame_path))
         self._counts[0] = len(self.frames)
         logger.debug("wrote frame %d (t = %g) to %s", len(self.frames) - 1, t, frame_path)
@@ -257,10 +316,19 @@ class VTKSeries:
         """
         if not self.frames:
             raise ValueError(f"series {self.name!r} in {self.folder} has no frames: nothing to commit")
+        if self.xdmf is not None:
+            self.xdmf.flush()
         fsync_folder(self.series_folder)  # the frames' names are on disk before the .pvd lists them
-        previous = _listed_folders(self.pvd_path) - {self.series_folder}
-        # The temporary .pvd is made in the series folder, so a crash before the rename leaves it
-        # only where the library recognises it as its own.
+        previous = self._referenced() - {self.series_folder}
+        # The temporary .pvd (and .xdmf) is made in the series folder, so a crash before the rename
+        # leaves it only where the library recognises it as its own.
+        if self.xdmf is not None:
+            text = self.xdmf.xml(f"{self.series_folder.name}/{self.name}.h5")
+            with atomic_output(self.xdmf_path, self.series_folder) as tmp:
+                tmp.write_text(text, encoding="utf-8")
+        elif _xdmf_folders(self.xdmf_path) & previous:
+            # an .xdmf of an older series of this name would outlive the frames it points to
+            self.xdmf_path.unlink()
         entries = [(t, path.relative_to(self.folder)) for t, path in self.frames]
         write_pvd(self.pvd_path, entries, temp_folder=self.series_folder)
         self._counts[1] = len(self.frames)
@@ -271,16 +339,18 @@ class VTKSeries:
         return self.pvd_path
 
     def discard(self) -> None:
-        """Remove this series' frames and folder, unless the ``.pvd`` lists them already."""
-        if self.series_folder in _listed_folders(self.pvd_path):
+        """Remove this series' frames and folder, unless the ``.pvd`` or ``.xdmf`` lists them already."""
+        if self.series_folder in self._referenced():
             return
+        if self.xdmf is not None:
+            self.xdmf.close()
         _remove_series_folder(self.series_folder, self.name)
         self.frames.clear()
         self._counts[:] = [0, 0]
 
     def _remove_orphans(self) -> None:
         """Remove marked folders of this name that no ``.pvd`` lists and whose writer has ended."""
-        listed = _listed_folders(self.pvd_path)
+        listed = self._referenced()
         for candidate in self.folder.glob(f"{glob.escape(self.name)}.*"):
             if candidate in listed or not candidate.is_dir() or candidate.is_symlink():
                 continue
@@ -304,4 +374,4 @@ def _warn_unpublished(counts: list[int], series_folder: str, name: str) -> None:
         )
 
 
-__all__ = ["MARKER_NAME", "VTKSeries"]
+__all__ = ["MARKER_NAME", "SINGLE_FILE_FORMATS", "VTKSeries"]

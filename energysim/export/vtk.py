@@ -78,7 +78,7 @@ def check_index_array(
     return c
 
 
-def _check_data(data: Mapping[str, Any] | None, count: int, what: str) -> dict[str, np.ndarray]:
+def check_data(data: Mapping[str, Any] | None, count: int, what: str) -> dict[str, np.ndarray]:
     """Validate per-point / per-cell arrays `[count]` or `[count, k]`; 2-vectors are padded to 3."""
     if data is None:
         return {}
@@ -176,12 +176,42 @@ def atomic_output(
     fsync_folder(dest.parent)
 
 
+def check_field_data(field_data: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
+    """Validate whole-dataset values (name -> number or 1-D numbers) and return them as 1-D float64."""
+    out: dict[str, np.ndarray] = {}
+    for key, value in (field_data or {}).items():
+        if not isinstance(key, str) or not key or any(c in key for c in "<>&\"'"):
+            raise ValueError(f"field_data names must be non-empty strings without XML markup, got {key!r}")
+        a = to_numpy(value, f"field_data[{key!r}]")
+        if (
+            a.ndim > 1
+            or a.size == 0
+            or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer))
+        ):
+            raise ValueError(f"field_data[{key!r}] must be a number or a 1-D array of numbers, got {a!r}")
+        a = a.astype(np.float64).reshape(-1)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"field_data[{key!r}] must be finite, got {a.tolist()}")
+        out[key] = a
+    return out
+
+
+def _field_data_xml(field_data: Mapping[str, np.ndarray]) -> bytes:
+    arrays = "".join(
+        f'<DataArray type="Float64" Name="{key}" NumberOfTuples="{a.size}" format="ascii">'
+        f"{' '.join(repr(float(v)) for v in a)}</DataArray>\n"
+        for key, a in field_data.items()
+    )
+    return f"<FieldData>\n{arrays}</FieldData>\n".encode()
+
+
 def write_vtu(
     path: str | os.PathLike[str],
     vertices: Any,
     cells: Any,
     point_data: Mapping[str, Any] | None = None,
     cell_data: Mapping[str, Any] | None = None,
+    field_data: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write an unstructured-grid ``.vtu`` file (binary, atomic) and return its path.
 
@@ -191,14 +221,17 @@ def write_vtu(
         cells: vertex indices `[m, 4]` (tetrahedra, needs 3D vertices) or `[m, 3]` (triangles).
         point_data: name -> `[n]` or `[n, k]`; `[n, 2]` vectors are padded with a zero z component.
         cell_data: name -> `[m]` or `[m, k]`; `[m, 2]` vectors are padded likewise.
+        field_data: name -> a number or 1-D numbers that belong to the whole dataset; ParaView takes
+            ``TimeValue`` as the frame's time.
     """
     v_in = to_numpy(vertices, "vertices")
     points = check_vertices(v_in)
     conn = check_index_array(cells, points.shape[0], (3, 4))
     if conn.shape[1] == 4 and v_in.shape[1] == 2:
         raise ValueError("4-node cells are written as tetrahedra and need 3D vertices [n, 3], got [n, 2]")
-    pdata = _check_data(point_data, points.shape[0], "point")
-    cdata = _check_data(cell_data, conn.shape[0], "cell")
+    pdata = check_data(point_data, points.shape[0], "point")
+    cdata = check_data(cell_data, conn.shape[0], "cell")
+    fdata = check_field_data(field_data)
     mesh = meshio.Mesh(
         points,
         [(_CELL_TYPES[conn.shape[1]], conn)],
@@ -209,6 +242,13 @@ def write_vtu(
     with atomic_output(dest) as tmp:
         # Looked up on the module at call time so tests can monkeypatch meshio.write.
         meshio.write(tmp, mesh, file_format="vtu", binary=True)
+        if fdata:
+            # meshio's vtu writer leaves field data out: it goes first in the dataset, as VTK writes it
+            text = tmp.read_bytes()
+            head, mark, tail = text.partition(b"<UnstructuredGrid>\n")
+            if not mark:
+                raise RuntimeError(f"unexpected .vtu layout from meshio in {tmp}: no <UnstructuredGrid>")
+            tmp.write_bytes(head + mark + _field_data_xml(fdata) + tail)
     return dest
 
 

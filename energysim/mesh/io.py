@@ -20,6 +20,8 @@ import meshio
 import numpy as np
 import torch
 
+from .tags import MeshTags, mesh_tags
+
 if TYPE_CHECKING:
     from .simplex import SimplexMesh
 
@@ -215,6 +217,17 @@ def read_simplices(
         return simplices_from_meshio(mesh, cell_type, prune, source="the file")
 
 
+def read_tagged_simplices(
+    path: str | PathLike[str], cell_type: str, prune: bool = True
+) -> tuple[torch.Tensor, torch.Tensor, MeshTags]:
+    """`read_simplices` and the file's vertex sets, element sets and cell data (`energysim.mesh.tags`),
+    numbered like the returned vertices and elements. Every failure is a MeshFileError naming `path`."""
+    mesh = read_meshio(path)
+    with reading(path):
+        vertices, elements = simplices_from_meshio(mesh, cell_type, prune, source="the file")
+        return vertices, elements, mesh_tags(mesh, cell_type, prune, source="the file")
+
+
 def write_simplices(
     path: str | PathLike[str],
     vertices: torch.Tensor,
@@ -261,6 +274,8 @@ def write_simplices(
 def load_mesh(path: str | PathLike[str], prune: bool = True) -> SimplexMesh:
     """Load a TetMesh if the file at `path` has "tetra" cells, else a TriMesh if it has "triangle" cells.
 
+    The mesh keeps the file's vertex sets, element sets and cell data (`energysim.mesh.tags`).
+
     Every failure (see `read_meshio`), and contents that do not make a valid mesh, raise a MeshFileError
     naming `path`.
     """
@@ -270,10 +285,11 @@ def load_mesh(path: str | PathLike[str], prune: bool = True) -> SimplexMesh:
     mesh = read_meshio(path)
     cell_types = {block.type for block in mesh.cells}
     with reading(path):
-        if "tetra" in cell_types:
-            return TetMesh(*simplices_from_meshio(mesh, "tetra", prune, source="the file"))
-        if "triangle" in cell_types:
-            return TriMesh(*simplices_from_meshio(mesh, "triangle", prune, source="the file"))
+        for cell_type, kind in (("tetra", TetMesh), ("triangle", TriMesh)):
+            if cell_type in cell_types:
+                vertices, elements = simplices_from_meshio(mesh, cell_type, prune, source="the file")
+                tags = mesh_tags(mesh, cell_type, prune, source="the file")
+                return kind(vertices, elements, **tags._asdict())
     raise MeshFileError(path, f"has neither tetra nor triangle cells (found cell types {sorted(cell_types)})")
 
 
@@ -284,6 +300,7 @@ __all__ = [
     "mesh_formats",
     "read_meshio",
     "read_simplices",
+    "read_tagged_simplices",
     "reading",
     "simplices_from_meshio",
     "write_simplices",

@@ -19,6 +19,7 @@ import torch
 
 from . import io as mesh_io
 from . import primitives
+from .tags import check_tags
 
 logger = logging.getLogger(__name__)
 
@@ -187,9 +188,23 @@ class SimplexMesh:
     out of range, flat elements (judged relative to each element's size, so any unit scale works),
     elements repeated (in any vertex order), elements overlapping across a shared facet, and vertices
     that no element uses (they would carry no mass; the file loaders drop them with `prune`).
+
+    Tags name parts of the mesh (see `energysim.mesh.tags`; the file loaders fill them from the file):
+    `vertex_sets` (name -> sorted vertex indices `[k]`, int64: ``scene.fix(mesh.vertex_sets["clamp"])``),
+    `element_sets` (name -> sorted element indices `[k]`, int64) and `cell_data` (name -> per-element
+    values `[m, ...]`, in the file's units). Each defaults to empty.
     """
 
-    def __init__(self, vertices: Any, elements: Any, dim: int | None = None) -> None:
+    def __init__(
+        self,
+        vertices: Any,
+        elements: Any,
+        dim: int | None = None,
+        *,
+        vertex_sets: Mapping[str, Any] | None = None,
+        element_sets: Mapping[str, Any] | None = None,
+        cell_data: Mapping[str, Any] | None = None,
+    ) -> None:
         vertices = _to_tensor(vertices)
         elements = _to_tensor(elements)
         if dim is None:
@@ -238,6 +253,11 @@ class SimplexMesh:
         self.vertices: torch.Tensor = vertices
         self.elements: torch.Tensor = elements.contiguous()
         self.dim: int = dim
+        # reorientation swaps vertices within an element, never reorders elements: tags stay aligned
+        tags = check_tags(vertex_sets, element_sets, cell_data, n, elements.shape[0])
+        self.vertex_sets: dict[str, torch.Tensor] = tags.vertex_sets
+        self.element_sets: dict[str, torch.Tensor] = tags.element_sets
+        self.cell_data: dict[str, torch.Tensor] = tags.cell_data
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(num_vertices={self.num_vertices}, num_elements={self.num_elements})"
@@ -279,9 +299,15 @@ class SimplexMesh:
         shape `[s, 2]`, traversing the boundary counter-clockwise, so the outward normal is the segment
         direction rotated by -90 degrees.
         """
+        return self.surface_with_elements()[0]
+
+    def surface_with_elements(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """`surface()` and the element each facet bounds, shape `[s]`, int64."""
         local = _TET_FACES if self.dim == 3 else _TRI_EDGES
         facets = self.elements[:, local].reshape(-1, self.dim)
-        return facets[_row_counts(facets.sort(dim=1).values) == 1].contiguous()
+        boundary = _row_counts(facets.sort(dim=1).values) == 1
+        owner = torch.arange(self.num_elements).repeat_interleave(len(local))
+        return facets[boundary].contiguous(), owner[boundary]
 
     def surface_vertices(self) -> torch.Tensor:
         """Sorted unique indices of the vertices on the boundary, shape `[k]`."""
@@ -309,8 +335,8 @@ class SimplexMesh:
 class TetMesh(SimplexMesh):
     """Tetrahedral mesh. `vertices`: rest positions, shape `[n, 3]`, in m; `tets`: shape `[m, 4]`."""
 
-    def __init__(self, vertices: Any, tets: Any) -> None:
-        super().__init__(vertices, tets, dim=3)
+    def __init__(self, vertices: Any, tets: Any, **tags: Mapping[str, Any] | None) -> None:
+        super().__init__(vertices, tets, dim=3, **tags)
 
     @property
     def tets(self) -> torch.Tensor:
@@ -338,18 +364,19 @@ class TetMesh(SimplexMesh):
     @classmethod
     def load(cls, path: str | PathLike[str], prune: bool = True) -> TetMesh:
         """Read the "tetra" cells of any meshio format (all blocks); `prune` drops unused vertices and
-        renumbers. Every failure (missing, unreadable or corrupt file, no "tetra" cells, an invalid mesh)
+        renumbers. Keeps the file's vertex sets, element sets and cell data (`energysim.mesh.tags`).
+        Every failure (missing, unreadable or corrupt file, no "tetra" cells, an invalid mesh)
         is a `MeshFileError` (a ValueError; a FileNotFoundError too when nothing is at `path`) naming
         `path`."""
-        vertices, tets = mesh_io.read_simplices(path, "tetra", prune)
+        vertices, tets, tags = mesh_io.read_tagged_simplices(path, "tetra", prune)
         with mesh_io.reading(path):
-            return cls(vertices, tets)
+            return cls(vertices, tets, **tags._asdict())
 
 
 class TriMesh(SimplexMesh):
     """Triangle mesh in the (x, y) plane. `vertices`: shape `[n, 2]` (or `[n, 3]` with constant z), in m."""
 
-    def __init__(self, vertices: Any, triangles: Any) -> None:
+    def __init__(self, vertices: Any, triangles: Any, **tags: Mapping[str, Any] | None) -> None:
         vertices = _to_tensor(vertices)
         if vertices.ndim == 2 and vertices.shape[1] == 3 and vertices.shape[0] > 0:
             _check_finite(vertices)
@@ -359,7 +386,7 @@ class TriMesh(SimplexMesh):
             if float((z - z[0]).abs().max()) > 1e-12 * scale:
                 raise ValueError("TriMesh needs planar vertices: got shape [n, 3] with non-constant z")
             vertices = vertices[:, :2]
-        super().__init__(vertices, triangles, dim=2)
+        super().__init__(vertices, triangles, dim=2, **tags)
 
     @property
     def triangles(self) -> torch.Tensor:
@@ -388,12 +415,13 @@ class TriMesh(SimplexMesh):
     @classmethod
     def load(cls, path: str | PathLike[str], prune: bool = True) -> TriMesh:
         """Read the "triangle" cells of any meshio format (all blocks); `prune` drops unused vertices and
-        renumbers. Every failure (missing, unreadable or corrupt file, no "triangle" cells, an invalid
+        renumbers. Keeps the file's vertex sets, element sets and cell data (`energysim.mesh.tags`).
+        Every failure (missing, unreadable or corrupt file, no "triangle" cells, an invalid
         mesh) is a `MeshFileError` (a ValueError; a FileNotFoundError too when nothing is at `path`)
         naming `path`."""
-        vertices, triangles = mesh_io.read_simplices(path, "triangle", prune)
+        vertices, triangles, tags = mesh_io.read_tagged_simplices(path, "triangle", prune)
         with mesh_io.reading(path):
-            return cls(vertices, triangles)
+            return cls(vertices, triangles, **tags._asdict())
 
 
 __all__ = ["SimplexMesh", "TetMesh", "TriMesh", "signed_volumes", "format_indices"]

@@ -209,6 +209,20 @@ class Scene(nn.Module):
         fixed[index] = True
         self.fixed = fixed
 
+    def fix_set(self, name: str) -> None:
+        """Pin the vertices of the mesh's vertex set `name` (a gmsh physical group, an Abaqus NSET, ...).
+
+        Raises:
+            KeyError: the mesh has no vertex set `name` (the message lists those it has).
+            ValueError: the set is empty (it named only points that no element uses).
+        """
+        sets = self.mesh.vertex_sets
+        if name not in sets:
+            raise KeyError(f"the mesh has no vertex set {name!r}; it has {sorted(sets)}")
+        if sets[name].numel() == 0:
+            raise ValueError(f"vertex set {name!r} is empty: none of its points is a vertex of an element")
+        self.fix(sets[name])
+
     def initial_state(
         self, positions: Tensor | None = None, velocities: Tensor | None = None, batch_size: int | None = None
     ) -> Tensor:
