@@ -1,8 +1,8 @@
 """Stress and contact force of a rollout's states, from the scene's own terms, for export.
 
-Stress comes from the scene's `NeoHookean` terms through the material's own stress function
-(`energysim.fem.materials.stable_neo_hookean_stress`, the derivative of the density the solver
-minimises); contact force from its obstacles (`Obstacle.contact_force`, −∇ of the barrier). Nothing
+Stress comes from the scene's elastic terms written as a density ψ(F) (`DensityEnergy`: `NeoHookean`
+and any user term), as P = ∂ψ/∂F of the very density the solver minimises (`density_stress`); contact
+force from its obstacles (`Obstacle.contact_force`, −∇ of the barrier). Nothing
 here repeats the physics.
 """
 
@@ -15,9 +15,8 @@ import torch
 from torch import Tensor
 
 from energysim.contact.obstacles import Obstacle
-from energysim.energies import NeoHookean
+from energysim.energies.derived import DensityEnergy, density_stress
 from energysim.fem.kinematics import deformation_gradient
-from energysim.fem.materials import stable_neo_hookean_stress
 
 if TYPE_CHECKING:
     from energysim.model.scene import Scene
@@ -39,9 +38,10 @@ def _as_3x3(tensor: Tensor) -> Tensor:
 
 
 def element_stress(scene: Scene, positions: Tensor, measure: str = "cauchy") -> Tensor | None:
-    """Stress of every element in each frame, shape `[F, m, 3, 3]`, in Pa; None without `NeoHookean`.
+    """Stress of every element in each frame, shape `[F, m, 3, 3]`, in Pa; None without a density term.
 
-    The sum over the scene's `NeoHookean` terms of their first Piola–Kirchhoff stress P = ∂ψ/∂F
+    The sum over the scene's `DensityEnergy` terms on the mesh's elements (`NeoHookean`, users' terms)
+    of their first Piola–Kirchhoff stress P = ∂ψ/∂F
     (force per reference area), or the Cauchy stress σ = J⁻¹ P Fᵀ (force per current area). Other
     terms (muscles, viscosity) add no stress here. In 2D (plane strain) the in-plane components are
     given and the out-of-plane row and column are 0. σ is undefined in an inverted element (J ≤ 0):
@@ -54,15 +54,14 @@ def element_stress(scene: Scene, positions: Tensor, measure: str = "cauchy") -> 
     """
     if measure not in STRESS_MEASURES:
         raise ValueError(f"stress must be one of {STRESS_MEASURES} or None, got {measure!r}")
-    terms = [term for term in scene.terms if isinstance(term, NeoHookean)]
+    terms = [term for term in scene.terms if isinstance(term, DensityEnergy)]
     if not terms:
         return None
     with torch.no_grad():
         total = None
         for term in terms:
-            mu, lam = term.lame()
             F = deformation_gradient(positions[:, term.element_vertices], term.rest_edge_inverse)
-            stress = stable_neo_hookean_stress(F, mu, lam)
+            stress, _ = density_stress(term.density, F)
             total = stress if total is None else total + stress
         if measure == "first_piola":
             return _as_3x3(total)
