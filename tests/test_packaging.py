@@ -39,7 +39,13 @@ DISTRIBUTION = "torch-energysim"
 # the files and folders a wheel is built from
 BUILD_INPUTS = ("pyproject.toml", "README.md", "LICENSE", "energysim")
 # parts of the package whose third-party imports are optional, and the extra that installs them
-OPTIONAL_PARTS = {"energysim/envs/": "rl", "energysim/export/render.py": "render"}
+OPTIONAL_PARTS = {
+    "energysim/envs/": "rl",
+    "energysim/export/render.py": "render",
+    "energysim/export/xdmf.py": "xdmf",
+    "energysim/viewer/server.py": "notebook",
+    "energysim/viewer/notebook.py": "notebook",
+}
 # import names whose distribution is named differently
 DISTRIBUTION_OF_MODULE = {"PIL": "pillow"}
 # the largest wait for a subprocess that imports torch, in s: far above its few seconds, below a hang
