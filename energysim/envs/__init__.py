@@ -9,6 +9,11 @@ for the batched `CreatureVectorEnv`:
     envs = gymnasium.make_vec("energysim/Worm-v0", num_envs=16, vectorization_mode="vector_entry_point")
 
 ``import energysim`` alone never imports gymnasium. See docs/envs.md.
+
+Modules: `config` (`CreatureEnvConfig`), `actions` (what an action may be), `core`
+(`CreatureSimulation`, the batched reset and step without Gymnasium), `transition` (what a step
+yields and its reward), `observation` (what a controller sees), `rendering` (a numpy side view),
+`creature_env` and `vector_env` (the Gymnasium wrappers).
 """
 
 from __future__ import annotations
