@@ -26,9 +26,11 @@ except ImportError as error:  # pragma: no cover - depends on the installation
     ) from error
 
 from energysim.creatures import CREATURES
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition
+from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.core import CreatureSimulation
 from energysim.envs.creature_env import CreatureEnv
 from energysim.envs.observation import ObservationLayout
+from energysim.envs.transition import Transition
 from energysim.envs.vector_env import CreatureVectorEnv
 
 # 300 env steps of the default h = 1/60 s: 5 s, several gait periods of every creature
