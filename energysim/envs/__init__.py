@@ -9,6 +9,11 @@ for the batched `CreatureVectorEnv`:
     envs = gymnasium.make_vec("energysim/Worm-v0", num_envs=16, vectorization_mode="vector_entry_point")
 
 ``import energysim`` alone never imports gymnasium. See docs/envs.md.
+
+Modules: `config` (`CreatureEnvConfig`), `actions` (what an action may be), `core`
+(`CreatureSimulation`, the batched reset and step without Gymnasium), `transition` (what a step
+yields and its reward), `observation` (what a controller sees), `rendering` (a numpy side view),
+`creature_env` and `vector_env` (the Gymnasium wrappers).
 """
 
 from __future__ import annotations
@@ -21,9 +26,11 @@ except ImportError as error:  # pragma: no cover - depends on the installation
     ) from error
 
 from energysim.creatures import CREATURES
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition
+from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.core import CreatureSimulation
 from energysim.envs.creature_env import CreatureEnv
 from energysim.envs.observation import ObservationLayout
+from energysim.envs.transition import Transition
 from energysim.envs.vector_env import CreatureVectorEnv
 
 # 300 env steps of the default h = 1/60 s: 5 s, several gait periods of every creature

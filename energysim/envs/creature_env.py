@@ -14,8 +14,11 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition, as_action_array
+from energysim.envs.actions import as_action_array
+from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.core import CreatureSimulation
 from energysim.envs.rendering import SideViewRenderer
+from energysim.envs.transition import Transition
 
 
 def observation_space(simulation: CreatureSimulation) -> spaces.Box:

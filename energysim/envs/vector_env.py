@@ -22,7 +22,9 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, as_action_array
+from energysim.envs.actions import as_action_array
+from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.core import CreatureSimulation
 from energysim.envs.creature_env import action_space, observation_space
 
 STEP_INFO_KEYS = (

@@ -353,7 +353,8 @@ class Viewer:
             from IPython.display import IFrame
         except ImportError as err:
             raise ImportError(
-                "Viewer.show() needs IPython (pip install 'torch-energysim[notebook]'); or end a notebook cell with the viewer, "
+                "Viewer.show() needs IPython (pip install 'torch-energysim[notebook]'); or end a notebook "
+                "cell with the viewer, "
                 f"or open {self.url if self.serving else 'the URL serve() returns'} in a browser"
             ) from err
         return IFrame(self._ensure_serving(), width=width, height=height)

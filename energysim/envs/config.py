@@ -1,0 +1,157 @@
+"""`CreatureEnvConfig`: what defines a creature environment, checked when it is made, and the
+settings that follow from it (the activation dynamics and the body viscosity in effect).
+
+With `activation_time_constant` τ set, the action is a command u that the muscles' activation a
+follows with first-order dynamics ȧ = (u − a)/τ, integrated exactly over each physics step; without
+it the action is the activation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from energysim.creatures import CREATURES
+from energysim.model.scene import INTEGRATORS
+
+# τ of the activation dynamics the explicit integrator gets by default: an elastic body takes in
+# energy at every jump of its muscles' rest lengths. With instant random activations and no
+# viscosity the leapfrog worm gained about 3 J a step (its weight is 0.48 kg) until it blew up
+# within 90 steps even at 64 substeps; with η = 30 Pa·s a jump of every muscle from rest still
+# blew up some of 64 worms in the first step at 32 substeps (the elements it squashes stiffen past
+# the step's limits). Through τ = 0.05 s, with that η, 64 worms ran 300 random-action steps at 32
+# substeps without a failure, their kinetic energy levelling off near 0.2 J.
+LEAPFROG_ACTIVATION_TIME_CONSTANT = 0.05
+# η in Pa·s of the Kelvin–Voigt viscosity (`energysim.energies.Viscosity`) the explicit integrator
+# gets by default: leapfrog keeps every elastic wave, so without it the worm rings and its gait is
+# chaotic (2 s of gait: 9.2, 11.3, 12.3 and 14.0 cm at 32, 64, 128 and 256 substeps). With 30 Pa·s
+# the same runs converge, 12.40, 12.18, 12.21 and 12.22 cm; 100 Pa·s is past the viscous kick's
+# stable step at 32 substeps (`explicit.stable_damping_step`).
+LEAPFROG_VISCOSITY = 30.0
+
+
+def _check_integer(value: object, name: str, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def _check_number(
+    value: object, name: str, unit: str, low: float | None = None, strict: bool = False
+) -> None:
+    ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if strict else value >= low
+    if not ok:
+        bound = "" if low is None else f" and {'>' if strict else '>='} {low}"
+        raise ValueError(f"{name} must be a finite number{bound}{unit}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class CreatureEnvConfig:
+    """What defines a creature environment (Gymnasium MuJoCo names where they exist).
+
+    Attributes:
+        creature: a name in `energysim.creatures.CREATURES`.
+        frame_skip: physics steps per env step, each with the env step's action.
+        dt: physics time step h in s; an env step lasts `frame_skip`·h.
+        forward_reward_weight: reward per m/s of forward (+x) centre-of-mass velocity.
+        ctrl_cost_weight: cost per unit of ‖u‖² (u the clipped action).
+        reset_noise_scale: half-width of the uniform noise added at reset to every rest position
+            component (m) and velocity component (m/s).
+        friction: Coulomb coefficient μ of the ground.
+        solver_tol: Newton–CG velocity-residual tolerance in m/s.
+        solver_max_iter: most Newton iterations per physics step; a step that needs more fails.
+        solver_compile: evaluate the step objective by `torch.compile`d functions (`Solver(compile=
+            True)`): about 3× more env steps/s for one worm on a CPU, after a compilation of 15 s to
+            a minute (each new batch size that the solve's compaction meets compiles again).
+        max_episode_steps: env steps before truncation, or None for none.
+        num_markers: marker vertices in the observation.
+        activation_time_constant: τ in s of first-order activation dynamics: the activation a
+            follows the action u as ȧ = (u − a)/τ, starting from rest (a = 0) at a reset. 0: none,
+            the action is the activation. None: none with an implicit integrator,
+            `LEAPFROG_ACTIVATION_TIME_CONSTANT` with "leapfrog".
+        integrator: the scene's integrator (`Scene.integrator`): "implicit_euler" (Newton–CG solves
+            with the IPC ground), "tr_bdf2", or "leapfrog" (explicit substeps, the ground as an
+            inelastic contact with Coulomb friction; with `solver_compile`, the fast one for batches).
+        substeps: leapfrog substeps per physics step; None: `stable_substeps` at the rest shape
+            (32 for the worm at h = 1/60 s). Only with "leapfrog".
+        viscosity: η in Pa·s of the body's Kelvin–Voigt viscosity (`Viscosity`); 0: none. None:
+            none with an implicit integrator (implicit Euler damps by itself), `LEAPFROG_VISCOSITY`
+            with "leapfrog".
+    """
+
+    creature: str = "worm"
+    frame_skip: int = 1
+    dt: float = 1 / 60
+    forward_reward_weight: float = 1.0
+    ctrl_cost_weight: float = 1e-3
+    reset_noise_scale: float = 1e-3
+    friction: float = 0.8
+    solver_tol: float = 1e-4
+    solver_max_iter: int = 100
+    solver_compile: bool = False
+    max_episode_steps: int | None = None
+    num_markers: int = 12
+    activation_time_constant: float | None = None
+    integrator: str = "implicit_euler"
+    substeps: int | None = None
+    viscosity: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.creature not in CREATURES:
+            raise ValueError(f"unknown creature {self.creature!r}; choose one of {CREATURES}")
+        _check_integer(self.frame_skip, "frame_skip", 1)
+        _check_number(self.dt, "dt", " s", 0.0, strict=True)
+        _check_number(self.forward_reward_weight, "forward_reward_weight", "")
+        _check_number(self.ctrl_cost_weight, "ctrl_cost_weight", "", 0.0)
+        _check_number(self.reset_noise_scale, "reset_noise_scale", " m (m/s)", 0.0)
+        _check_number(self.friction, "friction", "", 0.0)
+        _check_number(self.solver_tol, "solver_tol", " m/s", 0.0, strict=True)
+        _check_integer(self.solver_max_iter, "solver_max_iter", 1)
+        if not isinstance(self.solver_compile, bool):
+            raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
+        if self.max_episode_steps is not None:
+            _check_integer(self.max_episode_steps, "max_episode_steps", 1)
+        _check_integer(self.num_markers, "num_markers", 1)
+        if self.activation_time_constant is not None:
+            _check_number(self.activation_time_constant, "activation_time_constant", " s", 0.0)
+        if self.viscosity is not None:
+            _check_number(self.viscosity, "viscosity", " Pa·s", 0.0)
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
+        if self.substeps is not None:
+            _check_integer(self.substeps, "substeps", 1)
+            if self.integrator != "leapfrog":
+                raise ValueError(
+                    f"substeps = {self.substeps} is for integrator='leapfrog'; an implicit step takes "
+                    "dt whole"
+                )
+
+    @property
+    def time_constant(self) -> float:
+        """τ in s of the activation dynamics in effect (0: none); see `activation_time_constant`."""
+        if self.activation_time_constant is not None:
+            return float(self.activation_time_constant)
+        return LEAPFROG_ACTIVATION_TIME_CONSTANT if self.integrator == "leapfrog" else 0.0
+
+    @property
+    def body_viscosity(self) -> float:
+        """η in Pa·s of the body's viscosity in effect (0: none); see `viscosity`."""
+        if self.viscosity is not None:
+            return float(self.viscosity)
+        return LEAPFROG_VISCOSITY if self.integrator == "leapfrog" else 0.0
+
+    @property
+    def filters_activation(self) -> bool:
+        """Whether the activation follows the action with a time constant (`time_constant` > 0)."""
+        return self.time_constant > 0
+
+    def activation_decay(self) -> float:
+        """exp(−h/τ): the fraction of a − u left after one physics step (0 without a time constant)."""
+        tau = self.time_constant
+        return math.exp(-self.dt / tau) if tau > 0 else 0.0
+
+
+__all__ = ["LEAPFROG_ACTIVATION_TIME_CONSTANT", "LEAPFROG_VISCOSITY", "CreatureEnvConfig"]
