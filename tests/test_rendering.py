@@ -188,6 +188,8 @@ def test_bad_render_options_raise_clear_errors():
 @pytest.mark.skipif(sys.platform in ("darwin", "win32"), reason="these systems always have a display")
 def test_human_mode_without_a_display_refuses_at_construction(monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
+    # an env checker that tries every declared mode is not offered one that cannot work here
+    assert CreatureEnv("worm").metadata["render_modes"] == ["rgb_array"]
     with pytest.raises(RuntimeError, match="DISPLAY environment variable is not set.*rgb_array"):
         CreatureEnv("worm", render_mode="human")
     with pytest.raises(RuntimeError, match="DISPLAY"):
@@ -249,6 +251,7 @@ def test_human_mode_shows_every_reset_and_step_in_the_window(monkeypatch):
     monkeypatch.setattr(display, "display_problem", lambda: None)
     monkeypatch.setitem(sys.modules, "tkinter", fake.module)
     env = CreatureEnv("worm", render_mode="human", render_width=64, render_height=40)
+    assert env.metadata["render_modes"] == ["human", "rgb_array"]
     reference = CreatureEnv("worm", render_mode="rgb_array", render_width=64, render_height=40)
     env.reset(seed=0)
     reference.reset(seed=0)

@@ -15,7 +15,12 @@ import torch
 from gymnasium import spaces
 
 from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, Transition, as_action_array
-from energysim.envs.env_rendering import EnvRenderer, RenderOptions, check_render_mode
+from energysim.envs.env_rendering import (
+    EnvRenderer,
+    RenderOptions,
+    available_render_modes,
+    check_render_mode,
+)
 
 
 def observation_space(simulation: CreatureSimulation) -> spaces.Box:
@@ -142,6 +147,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self.render_mode = render_mode
         self.metadata = {
             **type(self).metadata,
+            "render_modes": available_render_modes(),
             "render_fps": max(1, round(1 / self.simulation.frame_seconds)),
         }
         self.observation_space = observation_space(self.simulation)

@@ -24,7 +24,12 @@ from gymnasium.vector.utils import batch_space
 
 from energysim.envs.core import CreatureEnvConfig, CreatureSimulation, as_action_array
 from energysim.envs.creature_env import action_space, observation_space
-from energysim.envs.env_rendering import EnvRenderer, RenderOptions, check_render_mode
+from energysim.envs.env_rendering import (
+    EnvRenderer,
+    RenderOptions,
+    available_render_modes,
+    check_render_mode,
+)
 
 STEP_INFO_KEYS = (
     "x_velocity",
@@ -122,6 +127,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self.render_mode = render_mode
         self.metadata = {
             **type(self).metadata,
+            "render_modes": available_render_modes(),
             "render_fps": max(1, round(1 / self.simulation.frame_seconds)),
         }
         self.single_observation_space = observation_space(self.simulation)
