@@ -17,7 +17,12 @@ from gymnasium import spaces
 from energysim.envs.actions import as_action_array
 from energysim.envs.config import CreatureEnvConfig
 from energysim.envs.core import CreatureSimulation
-from energysim.envs.rendering import SideViewRenderer
+from energysim.envs.env_rendering import (
+    EnvRenderer,
+    RenderOptions,
+    available_render_modes,
+    check_render_mode,
+)
 from energysim.envs.transition import Transition
 
 
@@ -76,7 +81,11 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             batches with `solver_compile`; see `CreatureEnvConfig`).
         substeps: leapfrog substeps per physics step; None: from the Courant limit at rest.
         viscosity: the body's Kelvin–Voigt viscosity η in Pa·s; None: 0, or 30 with "leapfrog".
-        render_mode: None or "rgb_array" (a side view, see `SideViewRenderer`).
+        render_mode: None, "rgb_array" (a side view, see `SideViewRenderer`) or "human" (shown in a
+            window at every reset and step; needs a display, else a RuntimeError here).
+        render_width, render_height: frame size in pixels.
+        camera: "follow" (centred on the centre of mass; the tiled ground scrolls past) or "fixed".
+        camera_window: `(x_min, x_max)` in m a fixed camera shows; None: taken from the episode's start.
         device, dtype: where and in which precision the simulation runs.
 
     Attributes:
@@ -87,7 +96,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         elapsed_steps: env steps since the last reset.
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 60}
+    metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 60}
 
     def __init__(
         self,
@@ -109,6 +118,10 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         substeps: int | None = None,
         viscosity: float | None = None,
         render_mode: str | None = None,
+        render_width: int = 480,
+        render_height: int = 270,
+        camera: str = "follow",
+        camera_window: tuple[float, float] | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
@@ -130,15 +143,14 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             substeps=substeps,
             viscosity=viscosity,
         )
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(
-                f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}"
-            )
+        check_render_mode(render_mode)
+        render_options = RenderOptions(render_width, render_height, camera, camera_window)
         self.simulation = CreatureSimulation(config, device=device, dtype=dtype)
         self.config = config
         self.render_mode = render_mode
         self.metadata = {
             **type(self).metadata,
+            "render_modes": available_render_modes(),
             "render_fps": max(1, round(1 / self.simulation.frame_seconds)),
         }
         self.observation_space = observation_space(self.simulation)
@@ -147,7 +159,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self.activation: torch.Tensor | None = None  # [1, a]
         self.elapsed_steps = 0
         self._observation = np.zeros(self.observation_space.shape, dtype=np.float32)
-        self._renderer: SideViewRenderer | None = None
+        self._rendering = EnvRenderer(self.simulation, render_mode, render_options, f"energysim {creature}")
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -158,6 +170,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self.activation = self.simulation.rest_activation(1)
         self.elapsed_steps = 0
         self._observation = self._to_numpy(self.simulation.observe(self.state, self.activation))
+        self._rendering.reset()
+        if self.render_mode == "human":
+            self.render()
         return self._observation.copy(), {"x_position": float(self.simulation.x_position(self.state)[0])}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -181,19 +196,17 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         terminated = info["numerical_failure"]
         limit = self.config.max_episode_steps
         truncated = limit is not None and self.elapsed_steps >= limit
+        if self.render_mode == "human":
+            self.render()
         return self._observation.copy(), float(transition.reward[0]), terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
-        """An RGB side view `[H, W, 3]` uint8 of the current state (render_mode "rgb_array"), else None."""
-        if self.render_mode != "rgb_array" or self.state is None:
-            return None
-        if self._renderer is None:
-            self._renderer = SideViewRenderer(self.simulation.creature.mesh)
-        positions = self.simulation.scene.split_state(self.state)[0][0]
-        return self._renderer.render(positions.detach().cpu().numpy())
+        """An RGB side view `[render_height, render_width, 3]` uint8 of the current state in
+        "rgb_array" mode; "human" shows it in the window. None otherwise and before the first reset."""
+        return self._rendering.render(self.state)
 
     def close(self) -> None:
-        self._renderer = None
+        self._rendering.close()
         super().close()
 
     @staticmethod

@@ -26,6 +26,12 @@ from energysim.envs.actions import as_action_array
 from energysim.envs.config import CreatureEnvConfig
 from energysim.envs.core import CreatureSimulation
 from energysim.envs.creature_env import action_space, observation_space
+from energysim.envs.env_rendering import (
+    EnvRenderer,
+    RenderOptions,
+    available_render_modes,
+    check_render_mode,
+)
 
 STEP_INFO_KEYS = (
     "x_velocity",
@@ -42,7 +48,9 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
 
     Args:
         num_envs: B ≥ 1.
-        creature and the other keywords: as `CreatureEnv`, except rendering (render_mode None only).
+        creature and the other keywords: as `CreatureEnv`.
+        render_entries: how many entries `render()` draws, the first ones: one frame, or a grid of
+            ⌈√k⌉ columns (`tile_frames`); at most `num_envs`.
             `max_episode_steps` truncates each entry after that many env steps (`gymnasium.make_vec`
             passes the registration's value).
 
@@ -58,7 +66,10 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         elapsed_steps: env steps since each entry's reset, shape `[B]`.
     """
 
-    metadata: dict[str, Any] = {"render_modes": [], "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata: dict[str, Any] = {
+        "render_modes": ["human", "rgb_array"],
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+    }
 
     def __init__(
         self,
@@ -81,15 +92,20 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         substeps: int | None = None,
         viscosity: float | None = None,
         render_mode: str | None = None,
+        render_width: int = 480,
+        render_height: int = 270,
+        camera: str = "follow",
+        camera_window: tuple[float, float] | None = None,
+        render_entries: int = 1,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
-        if render_mode is not None:
-            raise ValueError(
-                f"CreatureVectorEnv does not render; render_mode must be None, got {render_mode!r}"
-            )
+        check_render_mode(render_mode)
+        render_options = RenderOptions(render_width, render_height, camera, camera_window, render_entries)
+        if render_options.entries > num_envs:
+            raise ValueError(f"render_entries must be at most num_envs = {num_envs}, got {render_entries}")
         self.config = CreatureEnvConfig(
             creature=creature,
             frame_skip=frame_skip,
@@ -110,9 +126,10 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         )
         self.simulation = CreatureSimulation(self.config, device=device, dtype=dtype)
         self.num_envs = int(num_envs)
-        self.render_mode = None
+        self.render_mode = render_mode
         self.metadata = {
             **type(self).metadata,
+            "render_modes": available_render_modes(),
             "render_fps": max(1, round(1 / self.simulation.frame_seconds)),
         }
         self.single_observation_space = observation_space(self.simulation)
@@ -128,6 +145,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self._generators: list[np.random.Generator | None] = [None] * self.num_envs
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
         self._was_reset = False
+        self._rendering = EnvRenderer(self.simulation, render_mode, render_options, f"energysim {creature}")
 
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
@@ -155,6 +173,8 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self._reset_entries(np.flatnonzero(mask))
         self._autoreset[mask] = False
         self._was_reset = True
+        if self.render_mode == "human":
+            self.render()
         x_position = self.simulation.x_position(self.states).cpu().numpy()
         return self.observations.copy(), {"x_position": x_position, "_x_position": mask.copy()}
 
@@ -204,7 +224,17 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         info["x_position"] = self.simulation.x_position(self.states).cpu().numpy()
         info["_x_position"] = np.ones(self.num_envs, dtype=bool)
         self._autoreset = terminated | truncated
+        if self.render_mode == "human":
+            self.render()
         return self.observations.copy(), rewards, terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """The first entry's side view `[render_height, render_width, 3]` uint8, or a grid of the first
+        `render_entries` (see `CreatureEnv.render`); "human" shows it. None before the first reset."""
+        return self._rendering.render(self.states if self._was_reset else None)
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._rendering.close()
 
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
         if seed is None:
@@ -227,6 +257,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self.activations = self.activations.index_fill(0, index, 0.0)
         self.observations[entries] = self.simulation.observe(states, self.activations[index]).cpu().numpy()
         self.elapsed_steps[entries] = 0
+        self._rendering.reset(entries.tolist())
 
 
 __all__ = ["CreatureVectorEnv", "STEP_INFO_KEYS"]
