@@ -1,16 +1,18 @@
 """Train a soft creature's controller with PPO (stable-baselines3) on the batched env.
 
 The `--num-envs` creatures are one `CreatureVectorEnv` (one batched solve per env step), seen by SB3
-through `_training.CreatureVecEnv`. The policy (SB3's MlpPolicy, Gaussian, two tanh layers of 64)
+through `_training.CreatureVecEnv` (the public `energysim.envs.SB3VecEnv` plus the controller's clock).
+The policy (SB3's MlpPolicy, Gaussian, two tanh layers of 64)
 sees the env's observation plus clock features (sin 2πft, cos 2πft) at the creature's suggested gait
 frequency f, and its output is an excitation that the muscles' activation follows with time constant
 `--action-tau` (first-order activation dynamics, see `_training.py`): the gradient method's gaits
 depend on time too, and jumping activations in [−1, 1] at every step cost the solver about three
 times as many Newton iterations (docs/training.md). `--no-clock` and `--action-tau 0` turn these off.
 
-Every `--eval-every` env steps (a multiple of num_envs × n_steps): the deterministic policy is
-evaluated on the fixed evaluation seeds, a row is added to ``curve.csv`` and a checkpoint is written
-(policy, optimizer, global RNG states, counters, the curve so far). The training envs are then reset
+Every `--eval-every` env steps (a multiple of num_envs × n_steps) an SB3 callback evaluates the
+deterministic policy on the fixed evaluation seeds, logs it to SB3's logger, adds a row to
+``curve.csv`` and saves ``model.zip`` with SB3's `model.save` (`PPO.load` reads it), carrying the
+run's settings, curve and global RNG states. The training envs are then reset
 with seeds derived from (seed, evaluation index): the env's state is not saved, and an uninterrupted
 run re-seeds at the same points, so `--resume` continues the very same curve.
 
@@ -18,7 +20,8 @@ Run:  python scripts/train_ppo.py                       # worm, about 15 min on 
       python scripts/train_ppo.py --total-steps 256 --eval-every 128 --num-envs 4 --n-steps 32 --out /tmp/p
       python scripts/train_ppo.py --resume              # continue an interrupted run's curve
       python scripts/train_ppo.py --compile             # compiled physics: faster steps after compiling
-Writes to --out: curve.csv, checkpoint.pt, training.png, rollout/frame_*.vtu + frame.pvd, NAME.gif.
+Writes to --out: curve.csv, model.zip, logs/N/progress.csv (+ TensorBoard events when installed),
+training.png, rollout/frame_*.vtu + frame.pvd, NAME.gif.
 """
 
 from __future__ import annotations
