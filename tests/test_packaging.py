@@ -41,7 +41,7 @@ BUILD_INPUTS = ("pyproject.toml", "README.md", "LICENSE", "energysim")
 # parts of the package whose third-party imports are optional, and the extra that installs them
 OPTIONAL_PARTS = {"energysim/envs/": "rl", "energysim/export/render.py": "render"}
 # import names whose distribution is named differently
-DISTRIBUTION_OF_MODULE = {"PIL": "pillow"}
+DISTRIBUTION_OF_MODULE = {"PIL": "pillow", "stable_baselines3": "stable-baselines3"}
 # the largest wait for a subprocess that imports torch, in s: far above its few seconds, below a hang
 SUBPROCESS_TIMEOUT = 300
 
