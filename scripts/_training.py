@@ -1,5 +1,5 @@
-"""What the training scripts share: the task, an SB3 view of the batched env, evaluation, the learning
-curve, checkpoints and plots.
+"""What the training scripts share: the task, the controller's view of the batched env (an
+`energysim.envs.SB3VecEnv`), evaluation, the learning curve, checkpoints and plots.
 
 `train_ppo.py` (stable-baselines3 PPO) and `train_gradient.py` (backpropagation through the simulator)
 train controllers for the same task and log the same curve, so their curves can be drawn on one plot:
@@ -44,6 +44,8 @@ import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
+
+from energysim.envs import SB3VecEnv
 
 # the evaluation episodes' seeds: EVAL_SEED + i, the same for every method, run and evaluation
 EVAL_SEED = 1_000_000
@@ -177,27 +179,17 @@ class RunSettings:
 
 def make_vec_env(
     task: Task, num_envs: int, clock_frequency: float | None = None, action_time_constant: float = 0.0
-) -> Any:
+) -> CreatureVecEnv:
     """A `CreatureVecEnv` (stable-baselines3 `VecEnv`) over a fresh `CreatureVectorEnv` of `task`."""
     return CreatureVecEnv(task.vector_env(num_envs), clock_frequency, action_time_constant)
 
 
-def _vec_env_base() -> type:
-    # stable-baselines3 is needed only by PPO; the gradient method and evaluation run without it
-    try:
-        from stable_baselines3.common.vec_env import VecEnv
-    except ImportError:  # pragma: no cover - depends on the installation
-        return object
-    return VecEnv
+class CreatureVecEnv(SB3VecEnv):
+    """`energysim.envs.SB3VecEnv` with the controller's own pieces (module docstring): clock features
+    appended to the observation and first-order activation dynamics between the action and the env.
 
-
-class CreatureVecEnv(_vec_env_base()):  # type: ignore[misc]
-    """A `CreatureVectorEnv` as a stable-baselines3 `VecEnv`: one batched solve per step, no copies.
-
-    SB3 expects same-step autoreset: an entry that ends at step t is reset at once, its reset
-    observation is returned and the last observation of the episode goes into
-    ``info["terminal_observation"]``; truncation is ``info["TimeLimit.truncated"]``. Each info also
-    carries the env's reward terms, and "episode" ({"r": return, "l": length}) when an episode ends.
+    Everything SB3 sees follows `SB3VecEnv`: same-step autoreset, ``info["terminal_observation"]``
+    (with the clock of the episode's last state), ``info["TimeLimit.truncated"]`` and "episode".
     With `autoreset` False (evaluation), ended entries are left to the env's own next-step reset.
 
     Args:
@@ -213,7 +205,7 @@ class CreatureVecEnv(_vec_env_base()):  # type: ignore[misc]
         if clock_frequency is not None:
             check_number(clock_frequency, "clock_frequency", 0.0, strict=True)
         check_number(action_time_constant, "action_time_constant", 0.0)
-        self.env = env
+        super().__init__(env)
         self.clock_frequency = clock_frequency
         self.action_time_constant = float(action_time_constant)
         self.frame_seconds = float(env.simulation.frame_seconds)
@@ -221,24 +213,15 @@ class CreatureVecEnv(_vec_env_base()):  # type: ignore[misc]
         self.smoothing = 1.0 - math.exp(-self.frame_seconds / tau) if tau > 0 else 1.0
         extra = 0 if clock_frequency is None else 2
         size = env.single_observation_space.shape[0] + extra
-        observation_space = spaces.Box(-np.inf, np.inf, (size,), dtype=np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (size,), dtype=np.float32)
         self.autoreset = True
-        self.elapsed = np.zeros(env.num_envs, dtype=np.int64)
         self.activation = np.zeros((env.num_envs, env.single_action_space.shape[0]))
-        self.returns = np.zeros(env.num_envs)
-        self.rewards = np.zeros(env.num_envs)  # of the last step, float64
-        self._actions: np.ndarray | None = None
-        if _vec_env_base() is object:  # pragma: no cover
-            self.num_envs, self.observation_space = env.num_envs, observation_space
-            self.action_space = env.single_action_space
-            self._seeds = [None] * env.num_envs
-        else:
-            super().__init__(env.num_envs, observation_space, env.single_action_space)
+        self._ended_lengths = np.zeros(env.num_envs, dtype=np.int64)
 
     @property
     def times(self) -> np.ndarray:
         """Time of each entry's current state within its episode, `[B]`, in s."""
-        return self.elapsed * self.frame_seconds
+        return self.episode_lengths * self.frame_seconds
 
     def _observe(self, observations: np.ndarray, entries: np.ndarray | None = None) -> np.ndarray:
         if self.clock_frequency is None:
@@ -248,75 +231,44 @@ class CreatureVecEnv(_vec_env_base()):  # type: ignore[misc]
         clock = np.stack([np.sin(angle), np.cos(angle)], axis=-1).astype(np.float32)
         return np.concatenate([observations, clock], axis=-1)
 
-    def seed(self, seed: int | None = None) -> Sequence[int | None]:
-        """Seed the next `reset`: entry i with `seed` + i."""
-        self._seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
-        return self._seeds
-
     def reset(self) -> np.ndarray:
         """Reset every entry (with the seeds of `seed`, if given since the last reset)."""
-        seeds = list(self._seeds)
-        seed = None if all(s is None for s in seeds) else seeds
-        observations, _ = self.env.reset(seed=seed)
-        self._seeds = [None] * self.num_envs
-        self.elapsed[:] = 0
+        observations = super().reset()
         self.activation[:] = 0.0
-        self.returns[:] = 0.0
         return self._observe(observations)
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions, dtype=np.float64)
-
-    def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
-        if self._actions is None:
-            raise RuntimeError("step_async must come before step_wait")
-        actions, self._actions = self._actions, None
+        """Advance the activation dynamics with the excitations `actions` `[B, a]` (clipped to [−1, 1])
+        and hand the activations to the env."""
+        actions = np.asarray(actions, dtype=np.float64)
         if actions.shape != self.activation.shape:
             raise ValueError(f"actions must have shape {self.activation.shape}, got {actions.shape}")
         excitation = np.clip(actions, -1.0, 1.0)
         self.activation = self.activation + self.smoothing * (excitation - self.activation)
-        observations, rewards, terminated, truncated, info = self.env.step(self.activation)
-        self.elapsed += 1
-        self.rewards = rewards
-        self.returns += rewards
-        done = terminated | truncated
-        observations = self._observe(observations)
-        infos: list[dict[str, Any]] = [{key: info[key][i] for key in INFO_KEYS} for i in range(self.num_envs)]
-        for i in np.flatnonzero(done):
-            infos[i]["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
-            infos[i]["terminal_observation"] = observations[i].copy()
-            infos[i]["episode"] = {"r": float(self.returns[i]), "l": int(self.elapsed[i])}
-        if done.any() and self.autoreset:
-            fresh, _ = self.env.reset(options={"reset_mask": done})
-            self.elapsed[done] = 0
-            self.activation[done] = 0.0
-            self.returns[done] = 0.0
-            observations[done] = self._observe(fresh[done], np.flatnonzero(done))
-        return observations, rewards.astype(np.float32), done, infos
+        super().step_async(self.activation)
 
-    def close(self) -> None:
-        self.env.close()
+    def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        observations, rewards, done, infos = super().step_wait()
+        if self.clock_frequency is not None:
+            clocked = self._observe(observations)
+            for i in np.flatnonzero(done):
+                terminal = infos[i]["terminal_observation"][None]
+                infos[i]["terminal_observation"] = self._terminal_observe(terminal, i)
+            observations = clocked
+        return observations, rewards, done, infos
 
-    def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
-        # the entries share the batched env: one value, repeated per entry
-        value = None if attr_name == "render_mode" else getattr(self.env, attr_name)
-        return [value for _ in self._get_indices(indices)]
+    def _terminal_observe(self, observation: np.ndarray, entry: int) -> np.ndarray:
+        # the entry's clock at the episode's last state: its length before the reset
+        angle = 2 * math.pi * self.clock_frequency * self._ended_lengths[entry] * self.frame_seconds
+        clock = np.array([[math.sin(angle), math.cos(angle)]], dtype=np.float32)
+        return np.concatenate([observation, clock], axis=-1)[0]
 
-    def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
-        raise NotImplementedError("CreatureVecEnv's entries share one env; set attributes on .env")
-
-    def env_method(self, method_name: str, *args: Any, indices: Any = None, **kwargs: Any) -> list[Any]:
-        raise NotImplementedError("CreatureVecEnv's entries share one env; call methods on .env")
-
-    def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
-
-    def _get_indices(self, indices: Any) -> list[int]:
-        if indices is None:
-            return list(range(self.num_envs))
-        if isinstance(indices, int):
-            return [indices]
-        return list(indices)
+    def _reset_ended(self, done: np.ndarray, observations: np.ndarray) -> None:
+        self._ended_lengths = self.episode_lengths.copy()
+        if not self.autoreset:
+            return
+        super()._reset_ended(done, observations)
+        self.activation[done] = 0.0
 
 
 @dataclass(frozen=True)
@@ -563,14 +515,19 @@ def load_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"--resume: no checkpoint at {path}; run without --resume to start afresh")
     payload = torch.load(path, weights_only=True)
-    saved = payload["settings"]
+    check_settings(path, payload["settings"], settings)
+    return payload
+
+
+def check_settings(path: Path, saved: dict[str, Any], settings: dict[str, Any]) -> None:
+    """ValueError naming every setting in which the checkpoint at `path` (written with `saved`)
+    differs from the run's `settings`: its curve could not be continued."""
     differ = sorted(key for key in set(saved) | set(settings) if saved.get(key) != settings.get(key))
     if differ:
         detail = ", ".join(
             f"{key}: checkpoint {saved.get(key)!r}, now {settings.get(key)!r}" for key in differ
         )
         raise ValueError(f"--resume: {path} was written with other settings ({detail})")
-    return payload
 
 
 def timed_evaluation(venv: CreatureVecEnv, controller: Controller) -> tuple[Evaluation, float]:
@@ -617,11 +574,16 @@ def log_evaluation(
     save_checkpoint(out / CHECKPOINT_NAME, payload)
     write_curve(out / CURVE_NAME, curve)
     if progress:
-        tqdm.write(
-            f"{point.method}: {point.env_steps} env steps, {point.wall_seconds:.0f} s: eval return "
-            f"{point.eval_return:+.3f} ± {point.eval_return_stderr:.3f}, distance "
-            f"{100 * point.eval_distance:+.2f} cm"
-        )
+        report_evaluation(point)
+
+
+def report_evaluation(point: CurvePoint) -> None:
+    """Print an evaluation above the progress bar."""
+    tqdm.write(
+        f"{point.method}: {point.env_steps} env steps, {point.wall_seconds:.0f} s: eval return "
+        f"{point.eval_return:+.3f} ± {point.eval_return_stderr:.3f}, distance "
+        f"{100 * point.eval_distance:+.2f} cm"
+    )
 
 
 def progress_bar(method: str, settings: RunSettings, done: int, progress: bool) -> tqdm:

@@ -47,7 +47,7 @@ OPTIONAL_PARTS = {
     "energysim/viewer/notebook.py": "notebook",
 }
 # import names whose distribution is named differently
-DISTRIBUTION_OF_MODULE = {"PIL": "pillow"}
+DISTRIBUTION_OF_MODULE = {"PIL": "pillow", "stable_baselines3": "stable-baselines3"}
 # the largest wait for a subprocess that imports torch, in s: far above its few seconds, below a hang
 SUBPROCESS_TIMEOUT = 300
 

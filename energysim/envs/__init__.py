@@ -8,6 +8,9 @@ for the batched `CreatureVectorEnv`:
     env = gymnasium.make("energysim/Worm-v0")
     envs = gymnasium.make_vec("energysim/Worm-v0", num_envs=16, vectorization_mode="vector_entry_point")
 
+`SB3VecEnv` shows the batched env to stable-baselines3 (``PPO("MlpPolicy", SB3VecEnv(envs))``); it is
+imported on first use, so stable-baselines3 is needed only then.
+
 ``import energysim`` alone never imports gymnasium. See docs/envs.md.
 
 Modules: `config` (`CreatureEnvConfig`), `actions` (what an action may be), `core`
@@ -61,6 +64,16 @@ def register_envs() -> None:
 
 register_envs()
 
+
+def __getattr__(name: str) -> object:
+    # stable-baselines3 is imported only when its adapter is asked for
+    if name == "SB3VecEnv":
+        from energysim.envs.sb3 import SB3VecEnv
+
+        return SB3VecEnv
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "ENV_IDS",
     "MAX_EPISODE_STEPS",
@@ -69,6 +82,7 @@ __all__ = [
     "CreatureSimulation",
     "CreatureVectorEnv",
     "ObservationLayout",
+    "SB3VecEnv",
     "Transition",
     "env_id",
     "register_envs",
