@@ -39,7 +39,9 @@ DISTRIBUTION = "torch-energysim"
 # the files and folders a wheel is built from
 BUILD_INPUTS = ("pyproject.toml", "README.md", "LICENSE", "energysim")
 # parts of the package whose third-party imports are optional, and the extra that installs them
+# (the first matching prefix wins: the more specific parts come first)
 OPTIONAL_PARTS = {
+    "energysim/envs/rllib.py": "ray",
     "energysim/envs/": "rl",
     "energysim/export/render.py": "render",
     "energysim/export/xdmf.py": "xdmf",
