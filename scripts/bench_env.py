@@ -283,7 +283,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
         "--activation-time-constant",
         type=float,
         default=None,
-        help="τ in s of the env's activation dynamics (default: none, the action is the activation)",
+        help="τ in s of the env's activation dynamics (default: the body model's, 0.05 s; 0: none)",
     )
     parser.add_argument(
         "--compile", action="store_true", help="compiled objective evaluations (compile in --warmup)"
