@@ -46,6 +46,7 @@ def step_info(transition: Transition, index: int) -> dict[str, Any]:
         "reward_ctrl": float(transition.reward_ctrl[index]),
         "activation": transition.activation[index].detach().cpu().numpy().astype(np.float64),
         "solver_iterations": int(transition.solver_iterations[index]),
+        "solver_residual": float(transition.solver_residual[index]),
         "numerical_failure": bool(transition.numerical_failure[index]),
     }
 
