@@ -558,6 +558,21 @@ def test_bench_env_times_the_leapfrog_env_with_its_gait_error(tmp_path: Path) ->
     assert "explicit leapfrog substeps" in table and "gait error" in table
 
 
+def test_bench_env_sets_both_envs_side_by_side_with_the_residual(tmp_path: Path) -> None:
+    bench_env = bench_env_script()
+    rows = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "both", "--no-gait"]
+    )
+    assert [row.integrator for row in rows] == ["implicit_euler", "leapfrog"]
+    implicit, explicit = rows
+    # the implicit solves reached the env's tolerance, and said so; the explicit step solves nothing
+    assert 0 < implicit.solver_residual <= 1e-4 and np.isnan(explicit.solver_residual)
+    ratio = explicit.env_steps_per_second / implicit.env_steps_per_second
+    table = (tmp_path / "bench_env.md").read_text()
+    assert f"the explicit env is {ratio:.1f}× the implicit env's rate" in table
+
+
 @pytest.mark.parametrize("creature", ["worm", "crawler2d"])
 def test_leapfrog_envs_pass_the_checker_and_batch_exactly(creature: str) -> None:
     # the explicit env: substeps from the Courant limit at rest, τ = 0.05 s by default
