@@ -11,7 +11,9 @@ them. `--compile` evaluates the step objective by compiled functions (`solver_co
 compilation happens in the untimed warm-up steps, so give it a few (`--warmup 10`). Runs use
 `--threads` intra-op threads (default 1, best for meshes this small on a shared
 machine). `--integrator leapfrog` steps the env's explicit physics (`CreatureEnvConfig`: substeps
-from the Courant limit, the ground as an inelastic contact with Coulomb friction, τ = 0.05 s).
+from the Courant limit, the ground as an inelastic contact with Coulomb friction), `--integrator
+both` the implicit and the explicit env of the same body model side by side, with their ratio.
+Beside each implicit run: the largest velocity residual a solve left (m/s).
 
 Every speed comes with an error: the suggested open-loop gait (the creature's sine, through the
 same activation dynamics) is walked for 2 s by one env of the benchmarked configuration and by a
@@ -26,6 +28,8 @@ Run:  python scripts/bench_env.py                                    # worm and 
       python scripts/bench_env.py --compile --warmup 10 --out docs/benchmarks/bench_env_compiled
       python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
           --out docs/benchmarks/bench_env_leapfrog                   # the explicit env
+      python scripts/bench_env.py --creatures worm --batch-sizes 64 --integrator both --compile \
+          --warmup 10 --steps 20 --out docs/benchmarks/bench_env_both    # both envs side by side
       python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
           --dtype float32 --out docs/benchmarks/bench_env_leapfrog_float32
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
@@ -76,6 +80,7 @@ class Row:
     gait_seconds: float = float("nan")
     gait_distance_reference: float = float("nan")
     gait_distance_error: float = float("nan")
+    solver_residual: float = float("nan")
 
 
 def bench(
@@ -109,7 +114,7 @@ def bench(
     env.action_space.seed(0)
     for _ in range(warmup):
         env.step(env.action_space.sample())
-    walls, iterations, failures = [], [], 0
+    walls, iterations, residuals, failures = [], [], [0.0], 0
     profiler = cProfile.Profile() if profile else None
     for _ in range(steps):
         actions = env.action_space.sample()
@@ -125,6 +130,7 @@ def bench(
         stepped = info.get("_solver_iterations", np.zeros(batch, dtype=bool))
         if stepped.any():
             iterations.append(float(info["solver_iterations"][stepped].mean()))
+            residuals.append(float(info["solver_residual"][stepped].max()))
         failures += int(terminated.sum())
     if profiler is not None:
         text = io.StringIO()
@@ -151,6 +157,7 @@ def bench(
         integrator=integrator,
         substeps=env.simulation.scene.substeps,
         dtype=dtype,
+        solver_residual=max(residuals) if integrator != "leapfrog" else float("nan"),
     )
 
 
@@ -207,40 +214,43 @@ def activation_text(time_constant: float | None) -> str:
     return f"activation dynamics with τ = {time_constant:g} s (random commands, filtered)"
 
 
+PHYSICS = {
+    "leapfrog": "explicit leapfrog substeps (the ground an inelastic contact with Coulomb friction)",
+    "implicit_euler": "implicit_euler, Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted, the IPC ground)",
+}
+
+
 def markdown(rows: list[Row], threads: int) -> str:
-    """The results as a markdown table."""
+    """The results as a markdown table, the envs side by side when both were run."""
     dynamics = activation_text(rows[0].activation_time_constant)
     evaluations = "compiled evaluations" if rows[0].compiled else "eager evaluations"
-    if rows[0].integrator == "leapfrog":
-        physics = (
-            "explicit leapfrog substeps (the ground an inelastic contact with Coulomb friction), "
-            f"{evaluations}"
-        )
-        work = "substeps/step"
-    else:
-        physics = (
-            f"{rows[0].integrator}, Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted), {evaluations}"
-        )
-        work = "Newton iterations/step"
+    physics = "; ".join(PHYSICS[name] for name in dict.fromkeys(r.integrator for r in rows))
     lines = [
         f"Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, {rows[0].dtype}, "
-        f"{physics}, random actions (seed 0), {dynamics}, "
-        f"{threads} thread(s), device {rows[0].device}. "
+        f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
+        f"{dynamics}, {threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
-        "range. Newton iterations: per physics step, the batched solve's count (its slowest entry). "
+        "range. Work: leapfrog substeps per physics step, or Newton iterations per physics step (the "
+        "batched solve's count, its slowest entry) with the largest velocity residual a solve left. "
         f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
         "model four times finer in time, in float64 (the reference's distance beside it).",
         "",
     ]
-    header = ["creature", "B", "calls", "median ms/call (IQR)", "env steps/s (IQR range)", work, "failures",
-              "gait distance, reference (m)", "gait error (m)"]
+    header = ["creature", "B", "integrator", "calls", "median ms/call (IQR)", "env steps/s (IQR range)",
+              "work/step", "residual (m/s)", "failures", "gait distance, reference (m)", "gait error (m)"]
     lines += table(header, [
-        [r.creature, r.batch, r.steps, f"{r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f})",
+        [r.creature, r.batch, r.integrator, r.steps, f"{r.ms_per_call:.1f} ({r.ms_per_call_iqr:.1f})",
          f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–{r.env_steps_per_second_high:.1f})",
-         f"{r.substeps}" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f}", r.failures,
+         f"{r.substeps} substeps" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f} Newton",
+         "" if r.integrator == "leapfrog" else f"{r.solver_residual:.1e}", r.failures,
          f"{r.gait_distance_reference:.4f}", f"{r.gait_distance_error:.1e}"]
         for r in rows
     ])
+    implicit = {(r.creature, r.batch): r for r in rows if r.integrator != "leapfrog"}
+    explicit = {(r.creature, r.batch): r for r in rows if r.integrator == "leapfrog"}
+    for key in implicit.keys() & explicit.keys():
+        ratio = explicit[key].env_steps_per_second / implicit[key].env_steps_per_second
+        lines.append(f"\n{key[0]}, B = {key[1]}: the explicit env is {ratio:.1f}× the implicit env's rate.")
     return "\n".join(lines) + "\n"
 
 
@@ -283,7 +293,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
         "--activation-time-constant",
         type=float,
         default=None,
-        help="τ in s of the env's activation dynamics (default: none, the action is the activation)",
+        help="τ in s of the env's activation dynamics (default: the body model's, 0.05 s; 0: none)",
     )
     parser.add_argument(
         "--compile", action="store_true", help="compiled objective evaluations (compile in --warmup)"
@@ -291,8 +301,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument(
         "--integrator",
         default="implicit_euler",
-        choices=["implicit_euler", "leapfrog"],
-        help="the env's integrator (leapfrog: explicit substeps, use with --compile)",
+        choices=["implicit_euler", "leapfrog", "both"],
+        help="the env's integrator (leapfrog: explicit substeps, use with --compile; both: side by side)",
     )
     parser.add_argument(
         "--dtype", default="float64", choices=["float64", "float32"], help="the simulation's precision"
@@ -308,6 +318,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     if tau is not None and not (np.isfinite(tau) and tau >= 0):
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
     configure_threads(args.threads)
+    integrators = ["implicit_euler", "leapfrog"] if args.integrator == "both" else [args.integrator]
     rows = [
         bench(
             creature,
@@ -318,26 +329,30 @@ def main(argv: list[str] | None = None) -> list[Row]:
             args.profile,
             tau,
             args.compile,
-            args.integrator,
+            integrator,
             args.dtype,
         )
         for creature in args.creatures
         for batch in args.batch_sizes
+        for integrator in integrators
     ]
     if not args.no_gait:
-        # one gait per creature: the physics does not depend on B
+        # one gait per creature and integrator: the physics does not depend on B
         errors = {
-            creature: gait_error(
-                next(r for r in rows if r.creature == creature), args.device, args.gait_seconds
+            (creature, integrator): gait_error(
+                next(r for r in rows if (r.creature, r.integrator) == (creature, integrator)),
+                args.device,
+                args.gait_seconds,
             )
             for creature in args.creatures
+            for integrator in integrators
         }
         rows = [
             dataclasses.replace(
                 r,
                 gait_seconds=args.gait_seconds,
-                gait_distance_reference=errors[r.creature].gait_distance_reference,
-                gait_distance_error=errors[r.creature].gait_distance_error,
+                gait_distance_reference=errors[r.creature, r.integrator].gait_distance_reference,
+                gait_distance_error=errors[r.creature, r.integrator].gait_distance_error,
             )
             for r in rows
         ]

@@ -169,6 +169,8 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
         dt=dt,
         forward_reward_weight=forward_weight,
         ctrl_cost_weight=ctrl_weight,
+        activation_time_constant=0.0,  # the bare body, simulated apart below
+        viscosity=0.0,
     )
     env.reset(seed=1)
     start = env.state[0].clone()
@@ -251,7 +253,12 @@ def test_activation_dynamics_are_the_exact_step_response() -> None:
     # per-step update u + (a − u) e^{−h/τ} must reproduce it after k physics steps, to rounding
     frame_skip, dt, tau, ctrl_weight = 3, 1 / 60, 0.05, 0.1
     env = CreatureEnv(
-        "crawler2d", frame_skip=frame_skip, dt=dt, activation_time_constant=tau, ctrl_cost_weight=ctrl_weight
+        "crawler2d",
+        frame_skip=frame_skip,
+        dt=dt,
+        activation_time_constant=tau,
+        ctrl_cost_weight=ctrl_weight,
+        viscosity=0.0,  # the bare body, simulated apart below
     )
     observation, _ = env.reset(seed=2)
     layout = env.simulation.layout
@@ -285,7 +292,8 @@ def test_activation_dynamics_are_the_exact_step_response() -> None:
 
 
 def test_no_time_constant_is_todays_env_bit_for_bit() -> None:
-    # None and 0 both switch the dynamics off: the action is the activation, with no arithmetic on it
+    # 0 switches the dynamics off: the action is the activation, with no arithmetic on it; None is
+    # the body model's τ, with every integrator
     actions = np.random.default_rng(3).uniform(-1.2, 1.2, size=(3, 10))
 
     def rollout(**options: object) -> list[np.ndarray]:
@@ -297,12 +305,12 @@ def test_no_time_constant_is_todays_env_bit_for_bit() -> None:
             records += [observation, np.array([reward]), env.state[0].numpy(), info["activation"]]
         return records
 
+    instant = rollout(activation_time_constant=0.0)
+    assert instant[-1].tolist() == np.clip(actions[-1], -1, 1).tolist()
     default = rollout()
-    for records in (rollout(activation_time_constant=None), rollout(activation_time_constant=0.0)):
+    for records in (rollout(activation_time_constant=None), rollout(activation_time_constant=0.05)):
         assert all(np.array_equal(a, b) for a, b in zip(default, records, strict=True))
-    assert default[-1].tolist() == np.clip(actions[-1], -1, 1).tolist()
-    filtered = rollout(activation_time_constant=0.05)
-    assert not np.array_equal(default[1], filtered[1])
+    assert not np.array_equal(default[1], instant[1])
 
 
 def test_autoreset_is_next_step_like_gymnasiums_sync_vector_env() -> None:
@@ -322,13 +330,13 @@ def test_autoreset_is_next_step_like_gymnasiums_sync_vector_env() -> None:
         assert np.allclose(got[1], expected[1], rtol=0, atol=BATCH_TOLERANCE)
         assert np.array_equal(got[2], expected[2]) and np.array_equal(got[3], expected[3])
         info, expected_info = got[4], expected[4]
-        # the same keys and masks; the same values but the iteration count (a batched solve reports
-        # the iterations of its slowest entry)
+        # the same keys and masks; the same values but the iteration count and the residual (a
+        # batched solve reports those of its slowest entry)
         assert info.keys() == expected_info.keys()
         for key, value in info.items():
             if key.startswith("_"):
                 assert np.array_equal(value, expected_info[key])
-            elif key != "solver_iterations":
+            elif key not in ("solver_iterations", "solver_residual"):
                 assert np.allclose(value, expected_info[key], rtol=0, atol=BATCH_TOLERANCE)
         if k == 1:  # the second step reaches max_episode_steps
             assert got[3].all()
@@ -342,8 +350,10 @@ def test_autoreset_is_next_step_like_gymnasiums_sync_vector_env() -> None:
 
 def test_numerical_failure_terminates_with_the_last_good_observation() -> None:
     # with at most 20 Newton iterations, resting needs about 5 but switching every muscle to −1
-    # at once needs about 50: a real ConvergenceError from the strict solver
-    env = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    # at once needs about 50: a real ConvergenceError from the strict solver. Instant activations:
+    # the body model's τ would take the jump out
+    instant = {"activation_time_constant": 0.0, "viscosity": 0.0}
+    env = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0, **instant)
     before, _ = env.reset(seed=0)
     state = env.state.clone()
     observation, reward, terminated, truncated, info = env.step(-np.ones(10))
@@ -354,13 +364,14 @@ def test_numerical_failure_terminates_with_the_last_good_observation() -> None:
     body = slice(0, layout.activation.start)
     assert np.array_equal(observation[body], before[body])
     assert info["x_velocity"] == 0.0 and info["solver_iterations"] == 0
-    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0, **instant)
     calm.reset(seed=0)
     assert not calm.step(np.zeros(10))[2]
 
 
 def test_one_failing_entry_does_not_stop_the_others() -> None:
-    vector = CreatureVectorEnv(3, "crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    instant = {"activation_time_constant": 0.0, "viscosity": 0.0}  # see the test above
+    vector = CreatureVectorEnv(3, "crawler2d", solver_max_iter=20, reset_noise_scale=0.0, **instant)
     vector.reset(seed=0)
     actions = np.zeros((3, 10))
     actions[1] = -1.0
@@ -368,7 +379,7 @@ def test_one_failing_entry_does_not_stop_the_others() -> None:
     assert terminated.tolist() == [False, True, False]
     assert info["numerical_failure"].tolist() == [False, True, False]
     assert np.isfinite(observations).all() and np.isfinite(rewards).all()
-    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0)
+    calm = CreatureEnv("crawler2d", solver_max_iter=20, reset_noise_scale=0.0, **instant)
     calm.reset(seed=0)
     calm.step(np.zeros(10))
     for i in (0, 2):
@@ -521,14 +532,15 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
         assert row.env_steps_per_second == pytest.approx(row.batch / (1e-3 * row.ms_per_call))
     table = (tmp_path / "bench_env.md").read_text()
     assert "| crawler2d | 2 |" in table and (tmp_path / "bench_env.csv").exists()
-    assert "no activation dynamics" in table
+    # the env's body model by default
+    assert "τ = 0.05 s" in table and rows[0].activation_time_constant == 0.05
     # the activation time constant reaches the env and is recorded in both files
     rows = bench_env.main(
         ["--creatures", "crawler2d", "--batch-sizes", "1", "--steps", "1", "--warmup", "0", "--no-plot"]
-        + ["--device", "cpu", "--out", str(tmp_path), "--activation-time-constant", "0.05", "--no-gait"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--activation-time-constant", "0", "--no-gait"]
     )
-    assert rows[0].activation_time_constant == 0.05
-    assert "τ = 0.05 s" in (tmp_path / "bench_env.md").read_text()
+    assert rows[0].activation_time_constant == 0.0
+    assert "no activation dynamics" in (tmp_path / "bench_env.md").read_text()
     assert "activation_time_constant" in (tmp_path / "bench_env.csv").read_text().splitlines()[0]
 
 
@@ -544,6 +556,21 @@ def test_bench_env_times_the_leapfrog_env_with_its_gait_error(tmp_path: Path) ->
     assert 0 < row.gait_distance_error < 1e-3
     table = (tmp_path / "bench_env.md").read_text()
     assert "explicit leapfrog substeps" in table and "gait error" in table
+
+
+def test_bench_env_sets_both_envs_side_by_side_with_the_residual(tmp_path: Path) -> None:
+    bench_env = bench_env_script()
+    rows = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "both", "--no-gait"]
+    )
+    assert [row.integrator for row in rows] == ["implicit_euler", "leapfrog"]
+    implicit, explicit = rows
+    # the implicit solves reached the env's tolerance, and said so; the explicit step solves nothing
+    assert 0 < implicit.solver_residual <= 1e-4 and np.isnan(explicit.solver_residual)
+    ratio = explicit.env_steps_per_second / implicit.env_steps_per_second
+    table = (tmp_path / "bench_env.md").read_text()
+    assert f"the explicit env is {ratio:.1f}× the implicit env's rate" in table
 
 
 @pytest.mark.parametrize("creature", ["worm", "crawler2d"])
@@ -571,4 +598,7 @@ def test_leapfrog_env_settings_are_checked() -> None:
         envs.CreatureEnvConfig(integrator="leapfrog", substeps=0)
     # τ = 0 keeps instant activations on the explicit env too
     assert envs.CreatureEnvConfig(integrator="leapfrog", activation_time_constant=0.0).time_constant == 0.0
-    assert envs.CreatureEnvConfig().time_constant == 0.0
+    # one body model: the implicit env has the explicit env's τ and η unless told otherwise
+    assert envs.CreatureEnvConfig().time_constant == envs.config.ACTIVATION_TIME_CONSTANT == 0.05
+    assert envs.CreatureEnvConfig().body_viscosity == envs.config.BODY_VISCOSITY == 30.0
+    assert envs.CreatureEnvConfig(viscosity=0.0).body_viscosity == 0.0

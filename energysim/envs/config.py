@@ -1,5 +1,6 @@
 """`CreatureEnvConfig`: what defines a creature environment, checked when it is made, and the
-settings that follow from it (the activation dynamics and the body viscosity in effect).
+settings that follow from it (the activation dynamics and the body viscosity in effect): one body
+model, the same for the implicit and the explicit integrator.
 
 With `activation_time_constant` τ set, the action is a command u that the muscles' activation a
 follows with first-order dynamics ȧ = (u − a)/τ, integrated exactly over each physics step; without
@@ -16,20 +17,29 @@ import numpy as np
 from energysim.creatures import CREATURES
 from energysim.model.scene import INTEGRATORS
 
-# τ of the activation dynamics the explicit integrator gets by default: an elastic body takes in
-# energy at every jump of its muscles' rest lengths. With instant random activations and no
-# viscosity the leapfrog worm gained about 3 J a step (its weight is 0.48 kg) until it blew up
-# within 90 steps even at 64 substeps; with η = 30 Pa·s a jump of every muscle from rest still
-# blew up some of 64 worms in the first step at 32 substeps (the elements it squashes stiffen past
-# the step's limits). Through τ = 0.05 s, with that η, 64 worms ran 300 random-action steps at 32
-# substeps without a failure, their kinetic energy levelling off near 0.2 J.
-LEAPFROG_ACTIVATION_TIME_CONSTANT = 0.05
-# η in Pa·s of the Kelvin–Voigt viscosity (`energysim.energies.Viscosity`) the explicit integrator
-# gets by default: leapfrog keeps every elastic wave, so without it the worm rings and its gait is
-# chaotic (2 s of gait: 9.2, 11.3, 12.3 and 14.0 cm at 32, 64, 128 and 256 substeps). With 30 Pa·s
-# the same runs converge, 12.40, 12.18, 12.21 and 12.22 cm; 100 Pa·s is past the viscous kick's
-# stable step at 32 substeps (`explicit.stable_damping_step`).
-LEAPFROG_VISCOSITY = 30.0
+# The body model both integrators share: one creature, two discretisations. Its activation dynamics
+# and viscosity are properties of the body, not of a scheme, so that the implicit step as h → 0 and
+# the leapfrog as its substeps grow converge to one gait (scripts/bench_env_models.py).
+#
+# τ in s of the activation dynamics: an elastic body takes in energy at every jump of its muscles'
+# rest lengths. With instant random activations and no viscosity the leapfrog worm gained about 3 J
+# a step (its weight is 0.48 kg) until it blew up within 90 steps even at 64 substeps; with
+# η = 30 Pa·s a jump of every muscle from rest still blew up some of 64 worms in the first step at
+# 32 substeps (the elements it squashes stiffen past the step's limits). Through τ = 0.05 s, with
+# that η, 64 worms ran 300 random-action steps at 32 substeps without a failure, their kinetic
+# energy levelling off near 0.2 J. For the implicit step the same τ takes the jumps out of the
+# Newton solves' starting points.
+ACTIVATION_TIME_CONSTANT = 0.05
+# η in Pa·s of the Kelvin–Voigt viscosity (`energysim.energies.Viscosity`): leapfrog keeps every
+# elastic wave, so without it the worm rings and its gait is chaotic (2 s of gait: 9.2, 11.3, 12.3
+# and 14.0 cm at 32, 64, 128 and 256 substeps). With 30 Pa·s the same runs converge, 12.40, 12.18,
+# 12.21 and 12.22 cm; 100 Pa·s is past the viscous kick's stable step at 32 substeps
+# (`explicit.stable_damping_step`). The implicit step takes the same term as a lagged incremental
+# potential.
+BODY_VISCOSITY = 30.0
+# the names these values had when only the explicit integrator used them
+LEAPFROG_ACTIVATION_TIME_CONSTANT = ACTIVATION_TIME_CONSTANT
+LEAPFROG_VISCOSITY = BODY_VISCOSITY
 
 
 def _check_integer(value: object, name: str, low: int) -> None:
@@ -70,16 +80,15 @@ class CreatureEnvConfig:
         num_markers: marker vertices in the observation.
         activation_time_constant: τ in s of first-order activation dynamics: the activation a
             follows the action u as ȧ = (u − a)/τ, starting from rest (a = 0) at a reset. 0: none,
-            the action is the activation. None: none with an implicit integrator,
-            `LEAPFROG_ACTIVATION_TIME_CONSTANT` with "leapfrog".
+            the action is the activation. None: the body model's `ACTIVATION_TIME_CONSTANT`, with
+            every integrator.
         integrator: the scene's integrator (`Scene.integrator`): "implicit_euler" (Newton–CG solves
             with the IPC ground), "tr_bdf2", or "leapfrog" (explicit substeps, the ground as an
             inelastic contact with Coulomb friction; with `solver_compile`, the fast one for batches).
         substeps: leapfrog substeps per physics step; None: `stable_substeps` at the rest shape
             (32 for the worm at h = 1/60 s). Only with "leapfrog".
-        viscosity: η in Pa·s of the body's Kelvin–Voigt viscosity (`Viscosity`); 0: none. None:
-            none with an implicit integrator (implicit Euler damps by itself), `LEAPFROG_VISCOSITY`
-            with "leapfrog".
+        viscosity: η in Pa·s of the body's Kelvin–Voigt viscosity (`Viscosity`); 0: none. None: the
+            body model's `BODY_VISCOSITY`, with every integrator.
     """
 
     creature: str = "worm"
@@ -134,14 +143,14 @@ class CreatureEnvConfig:
         """τ in s of the activation dynamics in effect (0: none); see `activation_time_constant`."""
         if self.activation_time_constant is not None:
             return float(self.activation_time_constant)
-        return LEAPFROG_ACTIVATION_TIME_CONSTANT if self.integrator == "leapfrog" else 0.0
+        return ACTIVATION_TIME_CONSTANT
 
     @property
     def body_viscosity(self) -> float:
         """η in Pa·s of the body's viscosity in effect (0: none); see `viscosity`."""
         if self.viscosity is not None:
             return float(self.viscosity)
-        return LEAPFROG_VISCOSITY if self.integrator == "leapfrog" else 0.0
+        return BODY_VISCOSITY
 
     @property
     def filters_activation(self) -> bool:
@@ -154,4 +163,10 @@ class CreatureEnvConfig:
         return math.exp(-self.dt / tau) if tau > 0 else 0.0
 
 
-__all__ = ["LEAPFROG_ACTIVATION_TIME_CONSTANT", "LEAPFROG_VISCOSITY", "CreatureEnvConfig"]
+__all__ = [
+    "ACTIVATION_TIME_CONSTANT",
+    "BODY_VISCOSITY",
+    "LEAPFROG_ACTIVATION_TIME_CONSTANT",
+    "LEAPFROG_VISCOSITY",
+    "CreatureEnvConfig",
+]

@@ -174,13 +174,14 @@ class CreatureSimulation:
         x_before = self.x_position(state)
         alive = torch.ones(batch, dtype=torch.bool, device=self.device)
         iterations = torch.zeros(batch, dtype=torch.int64, device=self.device)
+        residual = torch.zeros(batch, dtype=self.dtype, device=self.device)
         with torch.no_grad():
             for _ in range(self.config.frame_skip):
                 if bool(alive.all()):
                     if filtering:
                         current = command + (current - command) * decay
-                    state, ok, taken = self._solve(state, current)
-                    alive, iterations = ok, iterations + taken
+                    state, ok, taken, left = self._solve(state, current)
+                    alive, iterations, residual = ok, iterations + taken, torch.maximum(residual, left)
                     continue
                 index = torch.nonzero(alive).flatten()
                 if index.numel() == 0:
@@ -189,10 +190,11 @@ class CreatureSimulation:
                     # failed entries keep the activation they failed with, as they keep their state
                     advanced = command[index] + (current[index] - command[index]) * decay
                     current = current.index_copy(0, index, advanced)
-                new, ok, taken = self._solve(state[index], current[index])
+                new, ok, taken, left = self._solve(state[index], current[index])
                 state = state.index_copy(0, index, new)
                 alive = alive.index_copy(0, index, ok)
                 iterations = iterations.index_add(0, index, taken)
+                residual = residual.index_copy(0, index, torch.maximum(residual[index], left))
             reward_ctrl = control_reward(command, self.config.ctrl_cost_weight)
             x_after, x_velocity, reward_forward, observation = self._outcome(state, current, x_before)
             unrepresentable = ~representable(observation, reward_forward)
@@ -207,6 +209,7 @@ class CreatureSimulation:
                 state = torch.where(unrepresentable[:, None], start, state)
                 alive = alive & ~unrepresentable
                 iterations = iterations.masked_fill(unrepresentable, 0)
+                residual = residual.masked_fill(unrepresentable, 0.0)
                 x_after, x_velocity, reward_forward, observation = self._outcome(state, current, x_before)
         return Transition(
             state=state,
@@ -220,6 +223,7 @@ class CreatureSimulation:
             x_velocity=x_velocity,
             numerical_failure=~alive,
             solver_iterations=iterations,
+            solver_residual=residual.masked_fill(~alive, 0.0),
         )
 
     def _outcome(
@@ -233,9 +237,10 @@ class CreatureSimulation:
         )
         return x_after, x_velocity, reward_forward, self.observe(state, activation)
 
-    def _solve(self, state: Tensor, activation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _solve(self, state: Tensor, activation: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """One physics step of every entry: new states (the old one where it failed), which entries
-        succeeded `[B]`, and their Newton iterations `[B]` (0 where failed)."""
+        succeeded `[B]`, their Newton iterations `[B]` (0 where failed) and the velocity residual in
+        m/s their solve left `[B]` (0 where failed)."""
         batch = state.shape[0]
         try:
             result = step(self.scene, state, activation)
@@ -243,7 +248,8 @@ class CreatureSimulation:
             if batch == 1:
                 logger.info("numerical failure of a %s step: %s", self.config.creature, error)
                 failed = torch.zeros(1, dtype=torch.bool, device=self.device)
-                return state, failed, torch.zeros(1, dtype=torch.int64, device=self.device)
+                none = torch.zeros(1, dtype=torch.int64, device=self.device)
+                return state, failed, none, torch.zeros(1, dtype=self.dtype, device=self.device)
             # split to find the failing entries; the others' results do not depend on the split
             half = batch // 2
             first = self._solve(state[:half], activation[:half])
@@ -251,7 +257,8 @@ class CreatureSimulation:
             return tuple(torch.cat(pair) for pair in zip(first, second, strict=True))  # type: ignore[return-value]
         ok = torch.isfinite(result.state).all(dim=1)
         new_state = torch.where(ok[:, None], result.state, state)
-        return new_state, ok, ok.to(torch.int64) * result.stats.iterations
+        left = torch.full((batch,), float(result.stats.residual), dtype=self.dtype, device=self.device)
+        return new_state, ok, ok.to(torch.int64) * result.stats.iterations, left.masked_fill(~ok, 0.0)
 
 
 __all__ = [

@@ -46,6 +46,7 @@ def step_info(transition: Transition, index: int) -> dict[str, Any]:
         "reward_ctrl": float(transition.reward_ctrl[index]),
         "activation": transition.activation[index].detach().cpu().numpy().astype(np.float64),
         "solver_iterations": int(transition.solver_iterations[index]),
+        "solver_residual": float(transition.solver_residual[index]),
         "numerical_failure": bool(transition.numerical_failure[index]),
     }
 
@@ -76,11 +77,12 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             truncates through the registration's `TimeLimit` instead).
         num_markers: marker vertices in the observation.
         activation_time_constant: τ in s of the activation dynamics; 0: none, the action is the
-            activation; None: none, or 0.05 s with "leapfrog" (see `CreatureEnvConfig`).
+            activation; None: the body model's 0.05 s, with every integrator (`CreatureEnvConfig`).
         integrator: "implicit_euler" (default), "tr_bdf2" or "leapfrog" (explicit substeps, fast in
             batches with `solver_compile`; see `CreatureEnvConfig`).
         substeps: leapfrog substeps per physics step; None: from the Courant limit at rest.
-        viscosity: the body's Kelvin–Voigt viscosity η in Pa·s; None: 0, or 30 with "leapfrog".
+        viscosity: the body's Kelvin–Voigt viscosity η in Pa·s; 0: none; None: the body model's 30,
+            with every integrator (`CreatureEnvConfig`).
         render_mode: None, "rgb_array" (a side view, see `SideViewRenderer`) or "human" (shown in a
             window at every reset and step; needs a display, else a RuntimeError here).
         render_width, render_height: frame size in pixels.

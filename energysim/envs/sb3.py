@@ -17,9 +17,9 @@ The B creatures stay one batched solve per step. What the adapter translates:
   ``info["TimeLimit.truncated"]`` is True when the time limit, not a numerical failure, ended it, so
   SB3 bootstraps the value of truncated episodes.
 - **Infos.** One dict per entry with the env's step info as Python scalars ("x_position",
-  "x_velocity", "reward_forward", "reward_ctrl", "solver_iterations", "numerical_failure") and
-  "activation" (float `[a]`), plus "episode" ({"r": return, "l": length}, as SB3's `Monitor`
-  writes it) when the episode ends, which SB3's logger reads for ``rollout/ep_rew_mean``.
+  "x_velocity", "reward_forward", "reward_ctrl", "solver_iterations", "solver_residual",
+  "numerical_failure") and "activation" (float `[a]`), plus "episode" ({"r": return, "l": length},
+  as SB3's `Monitor` writes it) when the episode ends, which SB3's logger reads for ``rollout/ep_rew_mean``.
 - **Rewards** are float32 (SB3's buffers); the env's float64 rewards of the last step are in
   `rewards`.
 

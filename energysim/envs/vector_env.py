@@ -39,6 +39,7 @@ STEP_INFO_KEYS = (
     "reward_ctrl",
     "activation",
     "solver_iterations",
+    "solver_residual",
     "numerical_failure",
 )
 
@@ -56,7 +57,8 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
 
     Info: arrays of length B with a `_key` mask each, as Gymnasium's vector envs give them:
     "x_position" for every entry; "x_velocity", "reward_forward", "reward_ctrl", "activation"
-    (`[B, a]`), "solver_iterations" and "numerical_failure" for the entries stepped (not those reset).
+    (`[B, a]`), "solver_iterations", "solver_residual" and "numerical_failure" for the entries
+    stepped (not those reset).
 
     Attributes:
         simulation: the batched `CreatureSimulation` (scene, markers, observation layout).
