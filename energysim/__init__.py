@@ -7,7 +7,7 @@ Installed as the distribution ``torch-energysim``; imported as ``energysim``.
 """
 
 # The one place the version is written: pyproject.toml reads it from here (setuptools' `attr`).
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 from energysim.contact import BoxObstacle, Ground, HalfSpace, Obstacle, SphereObstacle
 from energysim.creatures import CREATURES, Creature, load_creature, resting_state
