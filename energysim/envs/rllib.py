@@ -241,26 +241,43 @@ def random_policy(action_space: gymnasium.spaces.Box, seed: int) -> Policy:
     return lambda observations: generator.uniform(action_space.low, action_space.high)
 
 
-def episode_returns(env: CreatureVectorEnv, policy: Policy, seed: int) -> np.ndarray:
-    """Each entry's return over its first episode from ``env.reset(seed=seed)``, shape `[B]`.
+def episode_outcomes(
+    env: gymnasium.vector.VectorEnv, policy: Policy, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each entry's return and forward distance over its first episode from ``env.reset(seed=seed)``.
 
-    Requires ``env.config.max_episode_steps``, so that every episode ends.
+    Returns:
+        returns `[B]`, and distances `[B]` in m: the centre of mass's x at the episode's end minus at
+        its start.
+
+    `env` is a `CreatureVectorEnv`, or one wrapped (as `make_vector_env` gives it); it needs
+    ``max_episode_steps``, so that every episode ends.
     """
-    if env.config.max_episode_steps is None:
-        raise ValueError("episode_returns needs an env with max_episode_steps set, got None")
-    observations, _ = env.reset(seed=seed)
+    if env.unwrapped.config.max_episode_steps is None:
+        raise ValueError("episode_outcomes needs an env with max_episode_steps set, got None")
+    observations, info = env.reset(seed=seed)
+    start = np.asarray(info["x_position"], dtype=np.float64).copy()
+    end = start.copy()
     returns = np.zeros(env.num_envs)
     running = np.ones(env.num_envs, dtype=bool)
     while running.any():
-        observations, rewards, terminated, truncated, _ = env.step(policy(observations))
+        observations, rewards, terminated, truncated, info = env.step(policy(observations))
         returns[running] += rewards[running]
+        end[running] = info["x_position"][running]
         running &= ~(terminated | truncated)
-    return returns
+    return returns, end - start
+
+
+def episode_returns(env: gymnasium.vector.VectorEnv, policy: Policy, seed: int) -> np.ndarray:
+    """Each entry's return over its first episode from ``env.reset(seed=seed)``, shape `[B]`
+    (`episode_outcomes`' first half)."""
+    return episode_outcomes(env, policy, seed)[0]
 
 
 __all__ = [
     "RLLIB_ENV",
     "RunnerSeeds",
+    "episode_outcomes",
     "episode_returns",
     "greedy_policy",
     "make_vector_env",
