@@ -4,7 +4,7 @@ Two env runners (Ray actors) each step one batched `CreatureVectorEnv` of B worm
 after the training iterations the trained policy's mean action (the greedy policy) and uniform random
 actions run the same seeded episodes, and their returns and forward distances are compared.
 
-Run:  python scripts/ray_ppo.py                          # 30 iterations of 2 × 16 worms × 60 steps
+Run:  python scripts/ray_ppo.py                          # 25 iterations of 2 × 16 worms × 60 steps
       python scripts/ray_ppo.py --iterations 3 --episodes 32
 Prints: per iteration its wall time and env steps; then, for each policy, the mean return and mean
 forward distance over the evaluation episodes with their standard errors.
@@ -51,7 +51,7 @@ class Result:
 
 def run(
     *,
-    iterations: int = 30,
+    iterations: int = 25,
     num_envs: int = 16,
     env_runners: int = 2,
     episode_steps: int = 60,
@@ -139,7 +139,7 @@ def check(result: Result, margin: float = 3.0) -> None:
 
 def main(argv: list[str] | None = None) -> Result:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iterations", type=int, default=30)
+    parser.add_argument("--iterations", type=int, default=25)
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--env-runners", type=int, default=2)
     parser.add_argument("--episode-steps", type=int, default=60)

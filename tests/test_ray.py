@@ -27,7 +27,7 @@ from energysim.envs.vector_env import CreatureVectorEnv  # noqa: E402
 EPISODE_STEPS = 20
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 FULL = os.environ.get("ENERGYSIM_HEAVY") == "1"
-FULL_ITERATIONS = 30
+FULL_ITERATIONS = 25
 
 
 def _script(name: str):
@@ -77,7 +77,8 @@ def test_ppo_on_two_env_runners_learns_to_go_forward():
     ray_ppo = _script("ray_ppo")
     iterations, episodes = (FULL_ITERATIONS, 64) if FULL else (5, 32)
     result = ray_ppo.run(iterations=iterations, episodes=episodes)
-    assert result.env_steps == iterations * 2 * 16 * 60
+    # a runner samples at least its 16 × 60 steps per iteration (more where an entry failed and restarted)
+    assert result.env_steps >= iterations * 2 * 16 * 60
     gain = result.trained.distance_mean - result.initial.distance_mean
     stderr = np.hypot(result.trained.distance_stderr, result.initial.distance_stderr)
     assert result.trained.distance_mean > 0 and gain > 3 * stderr, (result.initial, result.trained)
