@@ -44,6 +44,7 @@ class Result:
     iterations: int
     env_steps: int
     train_seconds: float
+    exploring_returns: tuple[float, ...]  # each iteration's mean return of the sampled episodes
     initial: Outcome  # the untrained greedy policy
     trained: Outcome
     random: Outcome
@@ -105,10 +106,12 @@ def run(
         try:
             initial = evaluate(greedy_policy(algorithm))
             start = time.perf_counter()
+            exploring_returns = []
             for iteration in range(iterations):
                 tick = time.perf_counter()
                 result = algorithm.train()
                 steps = int(result["num_env_steps_sampled_lifetime"])
+                exploring_returns.append(float(result["env_runners"]["episode_return_mean"]))
                 print(f"iteration {iteration + 1}: {time.perf_counter() - tick:.1f} s, {steps} env steps")
             train_seconds = time.perf_counter() - start
             trained = evaluate(greedy_policy(algorithm))
@@ -118,7 +121,7 @@ def run(
         if started_here:
             ray.shutdown()
     random = evaluate(random_policy(env.action_space, seed=7))
-    return Result(iterations, steps, train_seconds, initial, trained, random)
+    return Result(iterations, steps, train_seconds, tuple(exploring_returns), initial, trained, random)
 
 
 def improvement(result: Result) -> tuple[float, float]:
