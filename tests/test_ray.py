@@ -6,6 +6,7 @@ Skipped without the optional `ray` extra. The cluster is a local `ray.init(num_c
 from __future__ import annotations
 
 import importlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,26 +17,24 @@ import pytest
 pytest.importorskip("ray.rllib")
 pytest.importorskip("gymnasium")
 
-import ray  # noqa: E402
 
 from energysim.envs.rllib import (  # noqa: E402
-    episode_returns,
-    greedy_policy,
     make_vector_env,
     ppo_config,
-    random_policy,
 )
 from energysim.envs.vector_env import CreatureVectorEnv  # noqa: E402
 
 EPISODE_STEPS = 20
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+FULL = os.environ.get("ENERGYSIM_HEAVY") == "1"
+FULL_ITERATIONS = 25
 
 
-@pytest.fixture
-def local_cluster():
-    ray.init(num_cpus=2, include_dashboard=False, ignore_reinit_error=True)
-    yield
-    ray.shutdown()
+def _script(name: str):
+    # scripts/ is not a package: its modules are imported as top-level modules
+    if str(SCRIPTS) not in sys.path:
+        sys.path.insert(0, str(SCRIPTS))
+    return importlib.import_module(name)
 
 
 def test_importing_energysim_and_its_envs_does_not_import_ray():
@@ -62,51 +61,35 @@ def test_runner_entries_are_seeded_apart_and_bad_arguments_are_named():
         ppo_config("worm", num_envs_per_runner=0)
     with pytest.raises(ValueError, match="lr"):
         ppo_config("worm", lr=float("nan"))
+    with pytest.raises(ValueError, match="gamma"):
+        ppo_config("worm", gamma=1.5)
+    with pytest.raises(ValueError, match="initial_log_std"):
+        ppo_config("worm", initial_log_std=float("nan"))
 
 
-@pytest.mark.xfail(
-    reason="4 PPO iterations (2,560 env steps) give a policy that stands still: return -0.01 against the "
-    "random policy's -0.17 with s.e. 0.08, short of 3 s.e.; a longer run is needed",
-    strict=False,
-)
-def test_ppo_on_two_env_runners_beats_the_random_policy(local_cluster):
-    # two runner actors, each stepping one batch of 16 worms; a few PPO iterations, then the
-    # trained policy's mean action against uniform random actions on the same 64 seeded episodes
-    algorithm = ppo_config(
-        "worm",
-        num_envs_per_runner=16,
-        num_env_runners=2,
-        max_episode_steps=EPISODE_STEPS,
-        rollout_steps=EPISODE_STEPS,
-        num_epochs=4,
-        lr=1e-3,
-    ).build_algo()
-    try:
-        assert algorithm.env_runner_group.num_remote_env_runners() == 2
-        for _ in range(4):
-            result = algorithm.train()
-        assert result["num_env_steps_sampled_lifetime"] == 4 * 2 * 16 * EPISODE_STEPS
-        env = CreatureVectorEnv(
-            16, "worm", integrator="leapfrog", solver_compile=True, max_episode_steps=EPISODE_STEPS
-        )
-        # 4 × 16 episodes: a random episode's return varies by about 0.7, a 2.5-s.e. margin with 16
-        seeds = [1000 + 16 * k for k in range(4)]
-        random = random_policy(env.action_space, seed=7)
-        random_returns = np.concatenate([episode_returns(env, random, seed) for seed in seeds])
-        trained = greedy_policy(algorithm)
-        trained_returns = np.concatenate([episode_returns(env, trained, seed) for seed in seeds])
-    finally:
-        algorithm.stop()
-    gain = trained_returns.mean() - random_returns.mean()
-    standard_error = np.sqrt((random_returns.var(ddof=1) + trained_returns.var(ddof=1)) / len(seeds) / 16)
-    assert gain > 3 * standard_error, (trained_returns.mean(), random_returns.mean(), standard_error)
+@pytest.mark.heavy
+def test_ppo_on_two_env_runners_learns_to_go_forward():
+    # two runner actors, each stepping one batch of 16 worms on 60-step (1 s) episodes.
+    # CI: 10 iterations (19,200 env steps). The greedy policy still stands still at this budget (its
+    # distance changes sign from one evaluation to the next), so the check is on the exploring
+    # policy, whose mean episode return rises by more than 2, i.e. 3.3 cm/s more forward speed
+    # (measured +0.26 -> +5.1; random actions score -0.9).
+    # Full (ENERGYSIM_HEAVY=1): the documented run (docs/scale-out.md); the greedy policy must go
+    # forward, and farther than uniform random actions on the same episodes, by 3 s.e., and beat
+    # their return by 3 s.e.
+    ray_ppo = _script("ray_ppo")
+    iterations, episodes = (FULL_ITERATIONS, 64) if FULL else (10, 32)
+    result = ray_ppo.run(iterations=iterations, episodes=episodes)
+    # a runner samples at least its 16 × 60 steps per iteration (more where an entry failed and restarted)
+    assert result.env_steps >= iterations * 2 * 16 * 60
+    first, last = result.exploring_returns[0], result.exploring_returns[-1]
+    assert last > first + 2.0, result.exploring_returns
+    if FULL:
+        ray_ppo.check(result)
 
 
 def test_tune_sweep_runs_two_trials_at_once(tmp_path):
-    # scripts/ is not a package: its modules are imported as top-level modules
-    if str(SCRIPTS) not in sys.path:
-        sys.path.insert(0, str(SCRIPTS))
-    ray_tune_sweep = importlib.import_module("ray_tune_sweep")
+    ray_tune_sweep = _script("ray_tune_sweep")
     lrs = [1e-4, 1e-3]
     rows = ray_tune_sweep.run(lrs, iterations=2, num_envs=16, episode_steps=EPISODE_STEPS)
     ray_tune_sweep.check(rows, lrs, iterations=2)

@@ -6,9 +6,11 @@ one env step of B creatures is `frame_skip` batched `es.step` calls.
 
 A step whose solve fails is a numerical failure of that batch entry: the solver here is strict, so a
 solve that does not reach `solver_tol` within `solver_max_iter` Newton iterations raises
-`ConvergenceError`, as does a non-finite iterate. The batch is then split in halves, recursively,
-until the failing entries stand alone: they keep their last good state and are flagged, the others
-are stepped as if nothing had happened (entries of a batched solve never mix, see `NewtonCG`). The
+`ConvergenceError`, as does a non-finite iterate. The failing entries are then found by bisection:
+solves of the whole batch in which the entries not under test stand at rest with relaxed muscles, so
+that every solve has the batch's shape and a compiled step is never recompiled for a smaller one. The
+failing entries keep their last good state and are flagged, the others are stepped as if nothing had
+happened (entries of a batched solve never mix, see `NewtonCG`). The
 explicit step fails the same way, by `InstabilityError`, where an entry's energy grew past its
 allowance, went non-finite, or a vertex ended inside the ground (`explicit.blown_up`); so no
 failed entry returns a non-finite state, observation or reward.
@@ -241,21 +243,49 @@ class CreatureSimulation:
         """One physics step of every entry: new states (the old one where it failed), which entries
         succeeded `[B]`, their Newton iterations `[B]` (0 where failed) and the velocity residual in
         m/s their solve left `[B]` (0 where failed)."""
+        everyone = torch.arange(state.shape[0], device=self.device)
+        return self._solve_entries(state, activation, everyone)
+
+    def _solve_entries(
+        self, state: Tensor, activation: Tensor, tested: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """`_solve` of the entries `tested` (indices into the batch); the others come back unchanged,
+        not succeeded, with 0 iterations and 0 residual.
+
+        The solve is of the full batch `[B, ...]`, the entries outside `tested` replaced by the rest
+        state with relaxed muscles (a solve that cannot fail), so that every solve has the batch's
+        shape: solving fewer entries would compile a new step for every batch size.
+        """
         batch = state.shape[0]
+        keep = torch.zeros(batch, dtype=torch.bool, device=self.device)
+        keep[tested] = True
+        if bool(keep.all()):
+            trial_state, trial_activation = state, activation
+        else:
+            placeholder = self.rest_state.to(state).expand(batch, -1)
+            trial_state = torch.where(keep[:, None], state, placeholder)
+            trial_activation = torch.where(keep[:, None], activation, self.rest_activation(batch))
         try:
-            result = step(self.scene, state, activation)
+            result = step(self.scene, trial_state, trial_activation)
         except ConvergenceError as error:
-            if batch == 1:
+            if tested.numel() == 1:
                 logger.info("numerical failure of a %s step: %s", self.config.creature, error)
-                failed = torch.zeros(1, dtype=torch.bool, device=self.device)
-                none = torch.zeros(1, dtype=torch.int64, device=self.device)
-                return state, failed, none, torch.zeros(1, dtype=self.dtype, device=self.device)
-            # split to find the failing entries; the others' results do not depend on the split
-            half = batch // 2
-            first = self._solve(state[:half], activation[:half])
-            second = self._solve(state[half:], activation[half:])
-            return tuple(torch.cat(pair) for pair in zip(first, second, strict=True))  # type: ignore[return-value]
-        ok = torch.isfinite(result.state).all(dim=1)
+                failed = torch.zeros(batch, dtype=torch.bool, device=self.device)
+                none = torch.zeros(batch, dtype=torch.int64, device=self.device)
+                return state, failed, none, torch.zeros(batch, dtype=self.dtype, device=self.device)
+            # bisect to find the failing entries; the others' results do not depend on the split
+            half = tested.numel() // 2
+            first = self._solve_entries(state, activation, tested[:half])
+            second = self._solve_entries(state, activation, tested[half:])
+            in_first = torch.zeros(batch, dtype=torch.bool, device=self.device)
+            in_first[tested[:half]] = True
+            return (
+                torch.where(in_first[:, None], first[0], second[0]),
+                torch.where(in_first, first[1], second[1]),
+                torch.where(in_first, first[2], second[2]),
+                torch.where(in_first, first[3], second[3]),
+            )
+        ok = keep & torch.isfinite(result.state).all(dim=1)
         new_state = torch.where(ok[:, None], result.state, state)
         left = torch.full((batch,), float(result.stats.residual), dtype=self.dtype, device=self.device)
         return new_state, ok, ok.to(torch.int64) * result.stats.iterations, left.masked_fill(~ok, 0.0)

@@ -28,6 +28,7 @@ import torch
 
 try:
     from ray.rllib.algorithms.ppo import PPO, PPOConfig
+    from ray.rllib.core import DEFAULT_MODULE_ID
     from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
     from ray.tune.registry import register_env
 except ImportError as error:  # pragma: no cover - depends on the installation
@@ -108,6 +109,10 @@ def ppo_config(
     num_epochs: int = 10,
     num_minibatches: int = 4,
     hidden_sizes: Sequence[int] = (64, 64),
+    gamma: float = 0.98,
+    gae_lambda: float = 0.95,
+    initial_log_std: float = -1.0,
+    entropy_coeff: float = 0.0,
     seed: int | None = 0,
     env_kwargs: Mapping[str, Any] | None = None,
 ) -> PPOConfig:
@@ -125,7 +130,13 @@ def ppo_config(
             holds ``max(1, num_env_runners)·B·rollout_steps`` transitions.
         lr: Adam learning rate.
         num_epochs, num_minibatches: passes over each batch and minibatches per pass.
-        hidden_sizes: the policy's and value function's hidden layer widths.
+        hidden_sizes: the policy's and value function's hidden layer widths (two separate networks).
+        gamma, gae_lambda: the discount per env step and the GAE λ.
+        initial_log_std: the Gaussian's log σ at the start, one free parameter per actuator. RLlib's
+            default (σ = 1, state dependent) saturates most actions at ±1, so the exploring policy
+            moves by its noise while its mean, the greedy policy, learns to stand still; σ = e⁻¹ lets
+            the mean carry the gait (as SB3's log σ₀ = −1 in docs/training.md).
+        entropy_coeff: the entropy bonus's weight in the loss.
         seed: runner w's entries are seeded ``(seed + w)·B + i``; None leaves them unseeded.
         env_kwargs: further `CreatureVectorEnv` keywords (``frame_skip``, ``friction``, ...).
 
@@ -142,6 +153,14 @@ def ppo_config(
     num_minibatches = _check_count(num_minibatches, "num_minibatches", 1)
     if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not (math.isfinite(lr) and lr > 0):
         raise ValueError(f"lr must be a finite number > 0, got {lr!r}")
+    for name, value, low, high in (
+        ("gamma", gamma, 0.0, 1.0),
+        ("gae_lambda", gae_lambda, 0.0, 1.0),
+        ("initial_log_std", initial_log_std, -10.0, 2.0),
+        ("entropy_coeff", entropy_coeff, 0.0, math.inf),
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+            raise ValueError(f"{name} must be a number in [{low}, {high}], got {value!r}")
     hidden = [_check_count(width, f"hidden_sizes[{i}]", 1) for i, width in enumerate(hidden_sizes)]
     env_config = {
         **dict(env_kwargs or {}),
@@ -166,10 +185,40 @@ def ppo_config(
             train_batch_size_per_learner=batch,
             minibatch_size=max(1, batch // num_minibatches),
             num_epochs=num_epochs,
+            gamma=float(gamma),
+            lambda_=float(gae_lambda),
+            entropy_coeff=float(entropy_coeff),
         )
-        .rl_module(model_config=DefaultModelConfig(fcnet_hiddens=hidden))
+        .rl_module(
+            model_config=DefaultModelConfig(fcnet_hiddens=hidden, free_log_std=True, vf_share_layers=False)
+        )
+        .callbacks(on_algorithm_init=_InitialLogStd(float(initial_log_std)))
         .debugging(seed=seed)
     )
+
+
+class _InitialLogStd:
+    """`on_algorithm_init`: set the policy's free log σ in every copy of the module, the learners' and
+    the env runners' (RLlib starts the free log σ at 0)."""
+
+    def __init__(self, log_std: float) -> None:
+        self.log_std = log_std
+
+    def __call__(self, algorithm: PPO, **kwargs: Any) -> None:
+        log_std = self.log_std
+
+        def set_log_std(module: torch.nn.Module) -> None:
+            with torch.no_grad():
+                for name, parameter in module.named_parameters():
+                    if name.endswith("log_std"):
+                        parameter.fill_(log_std)
+
+        algorithm.learner_group.foreach_learner(
+            lambda learner: set_log_std(learner.module[DEFAULT_MODULE_ID])
+        )
+        algorithm.env_runner_group.foreach_env_runner(
+            lambda runner: set_log_std(runner.module), local_env_runner=True
+        )
 
 
 def greedy_policy(algorithm: PPO) -> Policy:
@@ -192,26 +241,43 @@ def random_policy(action_space: gymnasium.spaces.Box, seed: int) -> Policy:
     return lambda observations: generator.uniform(action_space.low, action_space.high)
 
 
-def episode_returns(env: CreatureVectorEnv, policy: Policy, seed: int) -> np.ndarray:
-    """Each entry's return over its first episode from ``env.reset(seed=seed)``, shape `[B]`.
+def episode_outcomes(
+    env: gymnasium.vector.VectorEnv, policy: Policy, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each entry's return and forward distance over its first episode from ``env.reset(seed=seed)``.
 
-    Requires ``env.config.max_episode_steps``, so that every episode ends.
+    Returns:
+        returns `[B]`, and distances `[B]` in m: the centre of mass's x at the episode's end minus at
+        its start.
+
+    `env` is a `CreatureVectorEnv`, or one wrapped (as `make_vector_env` gives it); it needs
+    ``max_episode_steps``, so that every episode ends.
     """
-    if env.config.max_episode_steps is None:
-        raise ValueError("episode_returns needs an env with max_episode_steps set, got None")
-    observations, _ = env.reset(seed=seed)
+    if env.unwrapped.config.max_episode_steps is None:
+        raise ValueError("episode_outcomes needs an env with max_episode_steps set, got None")
+    observations, info = env.reset(seed=seed)
+    start = np.asarray(info["x_position"], dtype=np.float64).copy()
+    end = start.copy()
     returns = np.zeros(env.num_envs)
     running = np.ones(env.num_envs, dtype=bool)
     while running.any():
-        observations, rewards, terminated, truncated, _ = env.step(policy(observations))
+        observations, rewards, terminated, truncated, info = env.step(policy(observations))
         returns[running] += rewards[running]
+        end[running] = info["x_position"][running]
         running &= ~(terminated | truncated)
-    return returns
+    return returns, end - start
+
+
+def episode_returns(env: gymnasium.vector.VectorEnv, policy: Policy, seed: int) -> np.ndarray:
+    """Each entry's return over its first episode from ``env.reset(seed=seed)``, shape `[B]`
+    (`episode_outcomes`' first half)."""
+    return episode_outcomes(env, policy, seed)[0]
 
 
 __all__ = [
     "RLLIB_ENV",
     "RunnerSeeds",
+    "episode_outcomes",
     "episode_returns",
     "greedy_policy",
     "make_vector_env",

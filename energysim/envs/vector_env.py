@@ -13,6 +13,7 @@ reset info ("x_position" only) in the info arrays.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import fields
 from typing import Any
 
 import gymnasium
@@ -21,6 +22,7 @@ import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
+from torch import Tensor
 
 from energysim.envs.actions import as_action_array
 from energysim.envs.config import CreatureEnvConfig
@@ -32,6 +34,7 @@ from energysim.envs.env_rendering import (
     available_render_modes,
     check_render_mode,
 )
+from energysim.envs.transition import Transition
 
 STEP_INFO_KEYS = (
     "x_velocity",
@@ -205,9 +208,14 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         if resetting.any():
             self._reset_entries(np.flatnonzero(resetting))
         if stepping.size:
+            # the whole batch is stepped, the entries just reset from their fresh state with relaxed
+            # muscles, and their results dropped: a step of B − k entries would have another shape,
+            # and a compiled step would be compiled again for every k (entries never mix)
             index = torch.from_numpy(stepping).to(self.simulation.device)
-            action = torch.from_numpy(actions[stepping])
-            transition = self.simulation.step(self.states[index], action, self.activations[index])
+            action = actions.copy()
+            action[resetting] = 0.0
+            full = self.simulation.step(self.states, torch.from_numpy(action), self.activations)
+            transition = _entries(full, index) if resetting.any() else full
             self.states = self.states.index_copy(0, index, transition.state)
             self.activations = self.activations.index_copy(0, index, transition.activation)
             self.observations[stepping] = transition.observation.cpu().numpy()
@@ -260,6 +268,11 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         self.observations[entries] = self.simulation.observe(states, self.activations[index]).cpu().numpy()
         self.elapsed_steps[entries] = 0
         self._rendering.reset(entries.tolist())
+
+
+def _entries(transition: Transition, index: Tensor) -> Transition:
+    """The rows `index` of every field of `transition`."""
+    return Transition(**{field.name: getattr(transition, field.name)[index] for field in fields(Transition)})
 
 
 __all__ = ["CreatureVectorEnv", "STEP_INFO_KEYS"]
