@@ -238,10 +238,9 @@ def derived_kernel(name: str, term: DensityEnergy, element_positions: Tensor) ->
     """The derived kernel `name` ("energy_and_gradient" or "hessian") of `term` at corner positions
     `[B, m, d+1, d]` (see `DensityEnergy.element_energy_and_gradient` and `element_hessian`)."""
     if torch.compiler.is_compiling():
-        if OPAQUE_IN_COMPILED.get(name, False):
+        # Inside a compiled objective the Hessian kernel runs as a compiled graph of its own: fused
+        # with another term's blocks, Inductor makes one kernel slower than the two apart
+        if name == "hessian":
             return _opaque_kernel(name, term, element_positions, True)
         return _KERNELS[name](term, element_positions)
     return _run_kernel(name, term, element_positions)
-
-
-OPAQUE_IN_COMPILED = {"hessian": True, "energy_and_gradient": False}
