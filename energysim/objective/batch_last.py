@@ -17,7 +17,7 @@ from torch import Tensor
 
 from energysim.contact.projection import project_contacts
 from energysim.energies.base import ElementEnergy, EnergyTerm, is_dissipative
-from energysim.objective.evaluation import element_groups
+from energysim.objective.derivatives import element_groups
 
 # Batches from this size on take the batch-last layout where every element term has
 # `batch_last_forces`: with fewer entries its vectors would run mostly empty.

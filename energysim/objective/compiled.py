@@ -48,7 +48,8 @@ from energysim.linalg.banded import (
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.objective import batch_last, evaluation
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH, BatchLastPlan, batch_last_plan
-from energysim.objective.evaluation import element_groups, step_limit
+from energysim.objective.derivatives import element_groups
+from energysim.objective.evaluation import step_limit
 
 __all__ = [
     "BATCH_LAST_MIN_BATCH",

@@ -18,6 +18,7 @@ from torch import Tensor
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_element_blocks, has_vertex_diagonal
 from energysim.linalg.assembly import SparsityPattern, assemble, cached_pattern
 from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, gather_blocks
+from energysim.linalg.caching import IdentityCache
 
 EnergyFn = Callable[[Tensor], Tensor]
 
@@ -186,18 +187,31 @@ class HessianOperator:
         return cached_pattern([elements for elements, _ in self.blocks], n, dim, batch)
 
 
-def _same_elements(a: Tensor, b: Tensor) -> bool:
-    return a is b or (a.shape == b.shape and a.device == b.device and bool(torch.equal(a, b)))
+_GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
 
 
-def _add_blocks(blocks: list[tuple[Tensor, Tensor]], element_vertices: Tensor, block: Tensor) -> None:
-    # Terms on the same elements (a user's term beside the elastic one on every tet) share one
-    # group: their blocks are summed here, and the matrix is assembled from one scatter per group.
-    for index, (vertices, existing) in enumerate(blocks):
-        if _same_elements(vertices, element_vertices):
-            blocks[index] = (vertices, existing + block)
-            return
-    blocks.append((element_vertices, block))
+def element_groups(
+    terms: Sequence[EnergyTerm], member: Callable[[EnergyTerm], bool] = has_element_blocks
+) -> list[tuple[int, ...]]:
+    """The indices of the terms that are `member`s (default: those with element blocks), grouped by
+    equal `element_vertices` (a muscle term on every element of the mesh shares the elastic term's
+    elements): one gather and one scatter per group. Cached per tuple of vertex tensors."""
+    members = [index for index, term in enumerate(terms) if member(term)]
+    vertices = [terms[index].element_vertices for index in members]
+
+    def build() -> list[list[int]]:
+        groups: list[list[int]] = []
+        for position, tensor in enumerate(vertices):
+            for group in groups:
+                first = vertices[group[0]]
+                if first is tensor or (first.shape == tensor.shape and torch.equal(first, tensor)):
+                    group.append(position)
+                    break
+            else:
+                groups.append([position])
+        return groups
+
+    return [tuple(members[position] for position in group) for group in _GROUPS.get(vertices, None, build)]
 
 
 def hessian_operator(
@@ -229,12 +243,18 @@ def hessian_operator(
             continue
         if has_vertex_diagonal(term):
             diagonal = term.hessian_diagonal() if diagonal is None else diagonal + term.hessian_diagonal()
-        elif use_element_blocks and has_element_blocks(term):
-            block = element_hessian(term, x, action)
-            block = project_positive_semidefinite(block) if project else block
-            _add_blocks(blocks, term.element_vertices, block)
-        else:
+        elif not (use_element_blocks and has_element_blocks(term)):
             others.append(term)
+    if use_element_blocks:
+        # terms on the same elements (a user's term beside the elastic one on every tet) share one
+        # group: their blocks are summed, and the matrix takes one scatter per group
+        for group in element_groups(terms):
+            block = None
+            for index in group:
+                term_block = element_hessian(terms[index], x, action)
+                term_block = project_positive_semidefinite(term_block) if project else term_block
+                block = term_block if block is None else block + term_block
+            blocks.append((terms[group[0]].element_vertices, block))
     extra = []
     if others:
         x_fixed = x.detach()

@@ -8,13 +8,12 @@ branch); the caller checks them (`Objective.max_step`).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from energysim.energies.base import EnergyTerm, has_element_blocks
-from energysim.linalg.caching import IdentityCache
+from energysim.energies.base import EnergyTerm
 from energysim.objective.derivatives import energy_and_gradient as autograd_energy_and_gradient
 
 
@@ -115,29 +114,3 @@ def cut_back(
         limits.append(limit)
     return torch.stack(cuts), torch.stack(energies), torch.stack(limits)
 
-
-_GROUPS: IdentityCache[list[list[int]]] = IdentityCache(capacity=16)
-
-
-def element_groups(
-    terms: Sequence[EnergyTerm], member: Callable[[EnergyTerm], bool] = has_element_blocks
-) -> list[tuple[int, ...]]:
-    """The indices of the terms that are `member`s (default: those with element blocks), grouped by
-    equal `element_vertices` (a muscle term on every element of the mesh shares the elastic term's
-    elements): one gather and one scatter per group. Cached per tuple of vertex tensors."""
-    members = [index for index, term in enumerate(terms) if member(term)]
-    vertices = [terms[index].element_vertices for index in members]
-
-    def build() -> list[list[int]]:
-        groups: list[list[int]] = []
-        for position, tensor in enumerate(vertices):
-            for group in groups:
-                first = vertices[group[0]]
-                if first is tensor or (first.shape == tensor.shape and torch.equal(first, tensor)):
-                    group.append(position)
-                    break
-            else:
-                groups.append([position])
-        return groups
-
-    return [tuple(members[position] for position in group) for group in _GROUPS.get(vertices, None, build)]

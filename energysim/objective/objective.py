@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from energysim.energies.base import EnergyTerm, has_element_blocks
+from energysim.energies.base import EnergyTerm
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.objective import compiled as compiled_functions
 from energysim.objective import evaluation
-from energysim.objective.derivatives import HessianOperator, hessian_operator
+from energysim.objective.derivatives import HessianOperator, element_groups, hessian_operator
 
 
 @dataclass(frozen=True)
@@ -174,9 +174,10 @@ class Objective:
         return cuts, energies
 
     def element_groups(self) -> list[Tensor]:
-        """The vertex indices `[m, k]` of every nonlinear element term with Hessian blocks, in the
-        order `hessian` assembles them (what the sparsity pattern is built from)."""
-        return [term.element_vertices for term in self.terms if has_element_blocks(term)]
+        """The vertex indices `[m, k]` of each group of nonlinear element terms on the same elements
+        (`derivatives.element_groups`), in the order `hessian` assembles their summed blocks (what
+        the sparsity pattern is built from)."""
+        return [self.terms[group[0]].element_vertices for group in element_groups(self.terms)]
 
     def dense_hessian(self, x: Tensor) -> Tensor | None:
         """∇²E(x) as dense `[B, n·d, n·d]` matrices by the compiled function, fixed DOFs eliminated;
