@@ -185,7 +185,12 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
 
     # the same three steps, simulated apart from the env from its start state, with the env's solver
     creature = load_creature("crawler2d")
-    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4, indefinite="shift"))
+    scene = creature.scene(
+        dt,
+        friction=0.8,
+        solver=es.NewtonCG(tol=1e-4, indefinite="shift"),
+        friction_smoothing=env.config.friction_smoothing,
+    )
     states = [start]
     for _ in range(frame_skip):
         states.append(es.step(scene, states[-1], torch.from_numpy(clipped)).state)
@@ -279,7 +284,12 @@ def test_activation_dynamics_are_the_exact_step_response() -> None:
 
     # the physics saw the filtered activation of every physics step, not the command
     creature = load_creature("crawler2d")
-    scene = creature.scene(dt, friction=0.8, solver=es.NewtonCG(tol=1e-4, indefinite="shift"))
+    scene = creature.scene(
+        dt,
+        friction=0.8,
+        solver=es.NewtonCG(tol=1e-4, indefinite="shift"),
+        friction_smoothing=env.config.friction_smoothing,
+    )
     state = start
     for k in range(1, 2 * frame_skip + 1):
         activation = torch.from_numpy(command * (1 - np.exp(-k * dt / tau)))
@@ -602,3 +612,16 @@ def test_leapfrog_env_settings_are_checked() -> None:
     assert envs.CreatureEnvConfig().time_constant == envs.config.ACTIVATION_TIME_CONSTANT == 0.05
     assert envs.CreatureEnvConfig().body_viscosity == envs.config.BODY_VISCOSITY == 30.0
     assert envs.CreatureEnvConfig(viscosity=0.0).body_viscosity == 0.0
+
+
+def test_friction_smoothing_reaches_the_implicit_ground_and_bad_values_are_refused() -> None:
+    from energysim.creatures import scene_ground
+    from energysim.envs.config import FRICTION_SMOOTHING
+
+    default = CreatureEnv("crawler2d")
+    assert scene_ground(default.simulation.scene).friction_smoothing == FRICTION_SMOOTHING
+    chosen = CreatureEnv("crawler2d", friction_smoothing=2e-3)
+    assert scene_ground(chosen.simulation.scene).friction_smoothing == 2e-3
+    for bad in (0.0, -1e-3, float("nan"), "0.01"):
+        with pytest.raises(ValueError, match="friction_smoothing"):
+            CreatureEnv("crawler2d", friction_smoothing=bad)

@@ -86,7 +86,14 @@ class Creature:
         phases = torch.tensor(self.gait_phases, dtype=torch.float64)
         return self.gait_amplitude * torch.sin(2 * math.pi * self.gait_frequency * t[..., None] + phases)
 
-    def scene(self, dt: float = 1 / 60, friction: float = 0.8, solver: Solver | None = None) -> Scene:
+    def scene(
+        self,
+        dt: float = 1 / 60,
+        friction: float = 0.8,
+        solver: Solver | None = None,
+        *,
+        friction_smoothing: float | None = None,
+    ) -> Scene:
         """The creature on level ground: its suggested material and muscles, gravity along −y and an
         IPC ground at y = 0 with lagged Coulomb friction μ.
 
@@ -96,6 +103,8 @@ class Creature:
             dt: time step h in s, > 0.
             friction: Coulomb coefficient μ of the ground, ≥ 0.
             solver: the scene's optimizer; default the `Scene` default.
+            friction_smoothing: ε_v in m/s of the ground's smoothed friction (`Obstacle`); None: the
+                `Ground` default.
         """
         up = (0.0, 1.0, 0.0) if self.dim == 3 else (0.0, 1.0)
         scene = Scene(
@@ -107,7 +116,8 @@ class Creature:
         )
         scene.add(NeoHookean(self.youngs_modulus, self.poissons_ratio))
         scene.add(self.muscles())
-        scene.add(Ground(0.0, normal=up, friction=friction))
+        smoothing = {} if friction_smoothing is None else {"friction_smoothing": friction_smoothing}
+        scene.add(Ground(0.0, normal=up, friction=friction, **smoothing))
         return scene
 
 

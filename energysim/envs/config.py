@@ -40,6 +40,16 @@ BODY_VISCOSITY = 30.0
 # the names these values had when only the explicit integrator used them
 LEAPFROG_ACTIVATION_TIME_CONSTANT = ACTIVATION_TIME_CONSTANT
 LEAPFROG_VISCOSITY = BODY_VISCOSITY
+# ε_v in m/s of the implicit env's smoothed friction: below this slip velocity the friction force
+# ramps down (static friction creeps at a fraction of it). The friction's curvature is μλ/(ε_v h),
+# so a small ε_v makes Newton's quadratic model of a sticking vertex valid only over a slip of
+# ε_v·h. With 16 randomly driven worms, 1e-3 m/s (the `Ground` default) took 15.4 Newton
+# iterations per entry and step, 5e-3 m/s 10.9 and 1e-2 m/s 10.0; the suggested gait's 2 s
+# distance moved by 0.14 % at 5e-3 (0.13896 → 0.13916 m at h = 1/60 s), far below the time step's
+# own error (scripts/bench_env_models.py). Slow motions creep more with a larger ε_v: a 240-step
+# PPO run's gain fell from 11 to 4 evaluation standard errors at 1e-2 m/s, and stayed at 11 at 5e-3.
+# The explicit env's projected Coulomb friction has no smoothing.
+FRICTION_SMOOTHING = 5e-3
 
 
 def _check_integer(value: object, name: str, low: int) -> None:
@@ -71,6 +81,8 @@ class CreatureEnvConfig:
         reset_noise_scale: half-width of the uniform noise added at reset to every rest position
             component (m) and velocity component (m/s).
         friction: Coulomb coefficient μ of the ground.
+        friction_smoothing: ε_v in m/s of the implicit ground's smoothed friction (`FRICTION_SMOOTHING`);
+            the explicit integrator's projected friction is exact Coulomb and ignores it.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
         solver_max_iter: most Newton iterations per physics step; a step that needs more fails.
         solver_compile: evaluate the step objective by `torch.compile`d functions (`Solver(compile=
@@ -98,6 +110,7 @@ class CreatureEnvConfig:
     ctrl_cost_weight: float = 1e-3
     reset_noise_scale: float = 1e-3
     friction: float = 0.8
+    friction_smoothing: float = FRICTION_SMOOTHING
     solver_tol: float = 1e-4
     solver_max_iter: int = 100
     solver_compile: bool = False
@@ -117,6 +130,7 @@ class CreatureEnvConfig:
         _check_number(self.ctrl_cost_weight, "ctrl_cost_weight", "", 0.0)
         _check_number(self.reset_noise_scale, "reset_noise_scale", " m (m/s)", 0.0)
         _check_number(self.friction, "friction", "", 0.0)
+        _check_number(self.friction_smoothing, "friction_smoothing", " m/s", 0.0, strict=True)
         _check_number(self.solver_tol, "solver_tol", " m/s", 0.0, strict=True)
         _check_integer(self.solver_max_iter, "solver_max_iter", 1)
         if not isinstance(self.solver_compile, bool):
@@ -166,6 +180,7 @@ class CreatureEnvConfig:
 __all__ = [
     "ACTIVATION_TIME_CONSTANT",
     "BODY_VISCOSITY",
+    "FRICTION_SMOOTHING",
     "LEAPFROG_ACTIVATION_TIME_CONSTANT",
     "LEAPFROG_VISCOSITY",
     "CreatureEnvConfig",

@@ -70,7 +70,9 @@ class CreatureSimulation:
             indefinite="shift",
             compile=config.solver_compile,
         )
-        self.scene = self.creature.scene(config.dt, config.friction, solver)
+        self.scene = self.creature.scene(
+            config.dt, config.friction, solver, friction_smoothing=config.friction_smoothing
+        )
         if config.body_viscosity > 0:
             self.scene.add(Viscosity(config.body_viscosity))
         self.scene.to(device=torch.device(device) if device is not None else None, dtype=dtype)

@@ -15,7 +15,7 @@ import torch
 from gymnasium import spaces
 
 from energysim.envs.actions import as_action_array
-from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.config import FRICTION_SMOOTHING, CreatureEnvConfig
 from energysim.envs.core import CreatureSimulation
 from energysim.envs.env_rendering import (
     EnvRenderer,
@@ -70,6 +70,8 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         forward_reward_weight, ctrl_cost_weight: reward weights (per m/s, per unit ‖u‖²).
         reset_noise_scale: uniform reset noise half-width, m for positions and m/s for velocities.
         friction: Coulomb coefficient of the ground.
+        friction_smoothing: ε_v in m/s of the implicit ground's smoothed friction (default
+            `envs.config.FRICTION_SMOOTHING`, 0.005 m/s); the explicit integrator's friction is exact.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
         solver_max_iter: most Newton iterations per physics step; more is a numerical failure.
         solver_compile: compiled objective evaluations (see `CreatureEnvConfig`).
@@ -110,6 +112,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         ctrl_cost_weight: float = 1e-3,
         reset_noise_scale: float = 1e-3,
         friction: float = 0.8,
+        friction_smoothing: float = FRICTION_SMOOTHING,
         solver_tol: float = 1e-4,
         solver_max_iter: int = 100,
         solver_compile: bool = False,
@@ -135,6 +138,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             ctrl_cost_weight=ctrl_cost_weight,
             reset_noise_scale=reset_noise_scale,
             friction=friction,
+            friction_smoothing=friction_smoothing,
             solver_tol=solver_tol,
             solver_max_iter=solver_max_iter,
             solver_compile=solver_compile,

@@ -25,7 +25,7 @@ from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
 from energysim.envs.actions import as_action_array
-from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.config import FRICTION_SMOOTHING, CreatureEnvConfig
 from energysim.envs.core import CreatureSimulation
 from energysim.envs.creature_env import action_space, observation_space
 from energysim.envs.env_rendering import (
@@ -87,6 +87,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
         ctrl_cost_weight: float = 1e-3,
         reset_noise_scale: float = 1e-3,
         friction: float = 0.8,
+        friction_smoothing: float = FRICTION_SMOOTHING,
         solver_tol: float = 1e-4,
         solver_max_iter: int = 100,
         solver_compile: bool = False,
@@ -119,6 +120,7 @@ class CreatureVectorEnv(gymnasium.vector.VectorEnv):
             ctrl_cost_weight=ctrl_cost_weight,
             reset_noise_scale=reset_noise_scale,
             friction=friction,
+            friction_smoothing=friction_smoothing,
             solver_tol=solver_tol,
             solver_max_iter=solver_max_iter,
             solver_compile=solver_compile,
