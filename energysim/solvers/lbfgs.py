@@ -70,6 +70,7 @@ class LBFGS(Solver):
         stalled = torch.zeros_like(restarted)
         stagnation = Stagnation.start(x, energy, residual, LBFGS_STALL_ITERATIONS)
         iterations = 0
+        noise = None  # the energy's noise, once a line search has measured it (`line_step`)
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
@@ -78,7 +79,8 @@ class LBFGS(Solver):
             direction = -self._two_loop(gradient, history, inverse_diagonal, scale) * active[:, None, None]
             downhill = _dot(gradient, direction) < 0
             direction = torch.where(downhill[:, None, None], direction, -inverse_diagonal * gradient)
-            search = line_step(objective, x, energy, gradient, direction)
+            search = line_step(objective, x, energy, gradient, direction, noise=noise)
+            noise = search.noise
             failed = active & (search.step == 0)
             stalled = stalled | (failed & restarted)
             restarted = failed

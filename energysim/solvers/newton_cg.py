@@ -168,6 +168,7 @@ class NewtonCG(Solver):
         stagnation = Stagnation.start(x, energy, residual)
         entries = torch.arange(x.shape[0], device=x.device)
         used = [objective]
+        noise = None  # the energy's noise, once a line search has measured it (`line_step`)
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
@@ -185,6 +186,7 @@ class NewtonCG(Solver):
                 first_residual, steepest, stalled = first_residual[rows], steepest[rows], stalled[rows]
                 refresh = refresh[rows]
                 active = active[rows]
+                noise = None if noise is None else noise[rows]
             iterations += 1
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
@@ -204,7 +206,8 @@ class NewtonCG(Solver):
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
-            search = line_step(objective, x, energy, gradient, direction)
+            search = line_step(objective, x, energy, gradient, direction, noise=noise)
+            noise = search.noise
             if self.reuse_factorization is not None:
                 slow = search.residual > self.reuse_factorization * residual
                 refresh = active & (slow | (search.step < 1))
