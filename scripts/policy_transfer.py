@@ -115,7 +115,9 @@ class TransferRow:
 @dataclass(frozen=True)
 class TracePoint:
     """The centre of mass of the first evaluation episode after `step` env steps: a row of ``trace.csv``
-    (`height` above the ground, forward position `x` in m, `x_velocity` and `height_velocity` in m/s)."""
+    (`height` above the ground, forward position `x` in m, `x_velocity` and `height_velocity` in m/s),
+    and the height of the body's lowest vertex above the ground, `lowest`, in m: the body is off the
+    ground where it exceeds the implicit env's barrier distance d̂, or 0 in the explicit env."""
 
     env: str
     settings: str
@@ -124,6 +126,7 @@ class TracePoint:
     x: float
     x_velocity: float
     height_velocity: float
+    lowest: float
 
 
 @dataclass(frozen=True)
@@ -226,9 +229,10 @@ def centre_of_mass_trace(venv: CreatureVecEnv, result: Evaluation, env: EnvSetti
     up = ground.normal.to(com)
     height = com @ up - float(ground.offset)
     height_velocity = com_velocity @ up
+    lowest = ground.signed_distance(x).amin(dim=-1)
     return [
         TracePoint(env.integrator, env.label, k, float(height[k]), float(com[k, 0]),
-                   float(com_velocity[k, 0]), float(height_velocity[k]))
+                   float(com_velocity[k, 0]), float(height_velocity[k]), float(lowest[k]))
         for k in range(com.shape[0])
     ]
 
