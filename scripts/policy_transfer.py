@@ -8,9 +8,10 @@ creature. The deterministic policy (the mean action, `train_ppo.controller`, beh
 clock features and activation filter) runs the fixed evaluation episodes (`_training.evaluate`) in
 - its own env and the other env at the defaults it was trained with (h = 1/60 s, frame_skip 1, the
   run's solver tolerance; leapfrog: the stable substep count at rest);
-- both envs at converged settings (`CONVERGED`): implicit with h = 1/240 s × frame_skip 4 at a
-  solver tolerance of 1e-6 m/s, explicit with 128 substeps. The env step stays 1/60 s, so the
-  policy's clock, filter and reward are the same.
+- both envs at finer settings, labelled "converged" (`CONVERGED`): implicit with h = 1/240 s ×
+  frame_skip 4 at a solver tolerance of 1e-6 m/s, explicit with 128 substeps. These resolve a slow
+  crawl. A fast gait needs a much smaller implicit step (docs/training.md). The env step stays
+  1/60 s, so the policy's clock, filter and reward are the same.
 
 The retention ratio is the return on the other env over the return on its own env at the same
 settings (default with default, converged with converged); it is undefined (NaN) where the own
