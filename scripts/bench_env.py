@@ -81,6 +81,7 @@ class Row:
     gait_distance_reference: float = float("nan")
     gait_distance_error: float = float("nan")
     solver_residual: float = float("nan")
+    solver_budget: int | None = None
 
 
 def bench(
@@ -94,11 +95,12 @@ def bench(
     compile_objective: bool = False,
     integrator: str = "implicit_euler",
     dtype: str = "float64",
+    solver_budget: int | None = None,
 ) -> Row:
     """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
     constant `activation_time_constant` in s, None: the env's default; compiled objective
     evaluations with `compile_objective`; the env's `integrator`); one table row, without the
-    gait's error (`gait_error`)."""
+    gait's error (`gait_error`); `solver_budget`: the implicit env's fixed Newton budget per step."""
     env = CreatureVectorEnv(
         batch,
         creature,
@@ -109,6 +111,7 @@ def bench(
         solver_compile=compile_objective,
         integrator=integrator,
         dtype=getattr(torch, dtype),
+        solver_budget=solver_budget if integrator != "leapfrog" else None,
     )
     env.reset(seed=0)
     env.action_space.seed(0)
@@ -158,6 +161,7 @@ def bench(
         substeps=env.simulation.scene.substeps,
         dtype=dtype,
         solver_residual=max(residuals) if integrator != "leapfrog" else float("nan"),
+        solver_budget=env.config.solver_budget,
     )
 
 
@@ -186,12 +190,14 @@ def gait_error(row: Row, device: str, seconds: float = GAIT_SECONDS) -> Row:
     """`row` with its gait's reference distance and error: the same model four times finer in time,
     in float64 whatever the row's precision."""
     options = {
+        "solver_budget": row.solver_budget,
         "activation_time_constant": row.activation_time_constant,
         "integrator": row.integrator,
         "solver_compile": row.compiled,
         "dtype": getattr(torch, row.dtype),
     }
-    exact = {**options, "dtype": torch.float64}
+    # the reference solves every step to the tolerance, whatever budget the row had
+    exact = {**options, "dtype": torch.float64, "solver_budget": None}
     if row.integrator == "leapfrog":
         measured = gait_distance(row.creature, {**options, "substeps": row.substeps}, device, seconds)
         reference = gait_distance(row.creature, {**exact, "substeps": 4 * row.substeps}, device, seconds)
@@ -225,6 +231,12 @@ def markdown(rows: list[Row], threads: int) -> str:
     dynamics = activation_text(rows[0].activation_time_constant)
     evaluations = "compiled evaluations" if rows[0].compiled else "eager evaluations"
     physics = "; ".join(PHYSICS[name] for name in dict.fromkeys(r.integrator for r in rows))
+    budget = next((r.solver_budget for r in rows if r.solver_budget is not None), None)
+    if budget is not None:
+        physics += (
+            f", a fixed budget of at most {budget} Newton iterations per step (the residual it leaves "
+            "in the table; the gait's reference is solved to the tolerance)"
+        )
     lines = [
         f"Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, {rows[0].dtype}, "
         f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
@@ -307,6 +319,12 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument(
         "--dtype", default="float64", choices=["float64", "float32"], help="the simulation's precision"
     )
+    parser.add_argument(
+        "--solver-budget",
+        type=int,
+        default=None,
+        help="the implicit env's fixed Newton budget per physics step (default: solve to the tolerance)",
+    )
     parser.add_argument("--no-gait", action="store_true", help="skip the gait's error (the slow part)")
     parser.add_argument(
         "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
@@ -317,6 +335,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
     tau = args.activation_time_constant
     if tau is not None and not (np.isfinite(tau) and tau >= 0):
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
+    if args.solver_budget is not None and args.solver_budget < 1:
+        parser.error(f"--solver-budget must be an integer >= 1, got {args.solver_budget}")
     configure_threads(args.threads)
     integrators = ["implicit_euler", "leapfrog"] if args.integrator == "both" else [args.integrator]
     rows = [
@@ -331,6 +351,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
             args.compile,
             integrator,
             args.dtype,
+            args.solver_budget,
         )
         for creature in args.creatures
         for batch in args.batch_sizes

@@ -6,14 +6,15 @@ one env step of B creatures is `frame_skip` batched `es.step` calls.
 
 A step whose solve fails is a numerical failure of that batch entry: the solver here is strict, so a
 solve that does not reach `solver_tol` within `solver_max_iter` Newton iterations raises
-`ConvergenceError`, as does a non-finite iterate. The failing entries are then found by bisection:
-solves of the whole batch in which the entries not under test stand at rest with relaxed muscles, so
-that every solve has the batch's shape and a compiled step is never recompiled for a smaller one. The
-failing entries keep their last good state and are flagged, the others are stepped as if nothing had
-happened (entries of a batched solve never mix, see `NewtonCG`). The
-explicit step fails the same way, by `InstabilityError`, where an entry's energy grew past its
-allowance, went non-finite, or a vertex ended inside the ground (`explicit.blown_up`); so no
-failed entry returns a non-finite state, observation or reward.
+`ConvergenceError`, as does a non-finite iterate. With a fixed budget (`solver_budget`) only a
+non-finite iterate fails; an unconverged one is kept, and its residual reported. The failing
+entries are then found by bisection: solves of the whole batch in which the entries not under test
+stand at rest with relaxed muscles, so that every solve has the batch's shape and a compiled step is
+never recompiled for a smaller one. The failing entries keep their last good state and are flagged,
+the others are stepped as if nothing had happened (entries of a batched solve never mix, see
+`NewtonCG`). The explicit step fails the same way, by `InstabilityError`, where an entry's energy
+grew past its allowance, went non-finite, or a vertex ended inside the ground
+(`explicit.blown_up`); so no failed entry returns a non-finite state, observation or reward.
 
 The configuration and its checks are in `config`, the actions' in `actions`, the `Transition` and
 its reward in `transition`; their names are importable from here too.
@@ -22,6 +23,7 @@ its reward in `transition`; their names are importable from here too.
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -35,7 +37,7 @@ from energysim.envs.config import LEAPFROG_ACTIVATION_TIME_CONSTANT, LEAPFROG_VI
 from energysim.envs.observation import ObservationLayout, centre_of_mass, farthest_point_markers, observe
 from energysim.envs.transition import Transition, control_reward, forward_reward, representable
 from energysim.integrators.step import stable_substeps, step
-from energysim.solvers import ConvergenceError, NewtonCG
+from energysim.solvers import ConvergenceError, ConvergenceWarning, NewtonCG
 
 logger = logging.getLogger(__name__)
 
@@ -63,10 +65,11 @@ class CreatureSimulation:
         self.creature = load_creature(config.creature)
         # random actions make H indefinite in about half the Newton iterations: the shifted
         # factorisation keeps them on the direct (compiled) path, at the same iteration count
+        budgeted = config.solver_budget is not None
         solver = NewtonCG(
             tol=config.solver_tol,
-            max_iter=config.solver_max_iter,
-            strict=True,
+            max_iter=config.solver_budget if budgeted else config.solver_max_iter,
+            strict=not budgeted,
             indefinite="shift",
             compile=config.solver_compile,
         )
@@ -268,7 +271,11 @@ class CreatureSimulation:
             trial_state = torch.where(keep[:, None], state, placeholder)
             trial_activation = torch.where(keep[:, None], activation, self.rest_activation(batch))
         try:
-            result = step(self.scene, trial_state, trial_activation)
+            with warnings.catch_warnings():
+                if self.config.solver_budget is not None:
+                    # a budget's unconverged solves are its design: their residual is reported
+                    warnings.simplefilter("ignore", ConvergenceWarning)
+                result = step(self.scene, trial_state, trial_activation)
         except ConvergenceError as error:
             if tested.numel() == 1:
                 logger.info("numerical failure of a %s step: %s", self.config.creature, error)

@@ -74,6 +74,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             `envs.config.FRICTION_SMOOTHING`, 0.005 m/s); the explicit integrator's friction is exact.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
         solver_max_iter: most Newton iterations per physics step; more is a numerical failure.
+        solver_budget: a fixed budget of Newton iterations per physics step whose last iterate is
+            kept, converged or not (its residual is in `info["solver_residual"]`); None: solve to
+            `solver_tol`. See `CreatureEnvConfig`.
         solver_compile: compiled objective evaluations (see `CreatureEnvConfig`).
         max_episode_steps: truncate after this many env steps; None: never (`gymnasium.make`
             truncates through the registration's `TimeLimit` instead).
@@ -115,6 +118,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         friction_smoothing: float = FRICTION_SMOOTHING,
         solver_tol: float = 1e-4,
         solver_max_iter: int = 100,
+        solver_budget: int | None = None,
         solver_compile: bool = False,
         max_episode_steps: int | None = None,
         num_markers: int = 12,
@@ -141,6 +145,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             friction_smoothing=friction_smoothing,
             solver_tol=solver_tol,
             solver_max_iter=solver_max_iter,
+            solver_budget=solver_budget,
             solver_compile=solver_compile,
             max_episode_steps=max_episode_steps,
             num_markers=num_markers,

@@ -1,0 +1,76 @@
+"""A fixed Newton budget per physics step in the creature envs (`solver_budget`): the gait it walks
+against the converged solves', its reported residual, and its refusals."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from energysim.envs import CreatureEnv
+from energysim.solvers import ConvergenceWarning
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+BUDGET = 4
+STEPS = 60  # 1 s of the crawler's suggested gait
+
+
+def _gait(**options: object) -> tuple[float, list[int], list[float], np.ndarray]:
+    """Distance (m), Newton iterations and residuals per env step, and the final state."""
+    env = CreatureEnv("crawler2d", reset_noise_scale=0.0, **options)
+    _, info = env.reset(seed=0)
+    start = info["x_position"]
+    iterations, residuals = [], []
+    for k in range(STEPS):
+        _, _, terminated, _, info = env.step(env.simulation.creature.gait_action(k / 60).numpy())
+        assert not terminated
+        iterations.append(info["solver_iterations"])
+        residuals.append(info["solver_residual"])
+    return info["x_position"] - start, iterations, residuals, env.state[0].numpy()
+
+
+def test_a_budget_walks_the_converged_gait_and_reports_what_it_leaves() -> None:
+    converged, converged_iterations, converged_residuals, _ = _gait(solver_tol=1e-6)
+    assert max(converged_residuals) < 1e-6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)  # unconverged by design: no warning
+        budgeted, iterations, residuals, state = _gait(solver_budget=BUDGET)
+    assert max(iterations) <= BUDGET < max(converged_iterations)
+    # the budget leaves residuals far above the tolerance, and says so
+    assert max(residuals) > 1e-2 and all(np.isfinite(residuals))
+    # measured: 0.07809 against 0.07810 m; implicit Euler's own time error at h = 1/60 s is ~10 %
+    assert budgeted == pytest.approx(converged, rel=0.02)
+    # every iterate stays inside the CCD limit: above the ground
+    positions = torch.from_numpy(state[: state.size // 2]).reshape(-1, 2)
+    assert float(positions[:, 1].min()) > 0.0
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "4"])
+def test_a_bad_budget_is_refused_naming_it(bad: object) -> None:
+    with pytest.raises(ValueError, match="solver_budget"):
+        CreatureEnv("crawler2d", solver_budget=bad)
+
+
+def test_bench_env_times_a_budget_against_a_reference_solved_to_the_tolerance(tmp_path) -> None:  # noqa: ANN001
+    import sys
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    sys.path.insert(0, str(scripts))
+    try:
+        import bench_env
+    finally:
+        sys.path.remove(str(scripts))
+    (row,) = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "2", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--solver-budget", "2", "--gait-seconds", "0.2"]
+    )
+    assert row.solver_budget == 2 and row.newton_iterations <= 2
+    # two iterations leave a residual far above the tolerance, and the table shows it
+    assert row.solver_residual > 1e-3
+    # the gait's reference is solved to the tolerance at h/4: a finite, small difference
+    assert 0 < row.gait_distance_error < 0.01
+    assert "fixed budget of at most 2 Newton iterations" in (tmp_path / "bench_env.md").read_text()
