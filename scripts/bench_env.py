@@ -230,13 +230,14 @@ def markdown(rows: list[Row], threads: int) -> str:
     """The results as a markdown table, the envs side by side when both were run."""
     dynamics = activation_text(rows[0].activation_time_constant)
     evaluations = "compiled evaluations" if rows[0].compiled else "eager evaluations"
-    physics = "; ".join(PHYSICS[name] for name in dict.fromkeys(r.integrator for r in rows))
     budget = next((r.solver_budget for r in rows if r.solver_budget is not None), None)
+    texts = dict(PHYSICS)
     if budget is not None:
-        physics += (
+        texts["implicit_euler"] += (
             f", a fixed budget of at most {budget} Newton iterations per step (the residual it leaves "
             "in the table; the gait's reference is solved to the tolerance)"
         )
+    physics = "; ".join(texts[name] for name in dict.fromkeys(r.integrator for r in rows))
     lines = [
         f"Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, {rows[0].dtype}, "
         f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
