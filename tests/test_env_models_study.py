@@ -13,6 +13,7 @@ pytest.importorskip("gymnasium")
 
 from energysim.creatures import scene_ground  # noqa: E402
 from energysim.envs import CreatureEnv  # noqa: E402
+from energysim.envs.config import FRICTION_SMOOTHING  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -71,8 +72,8 @@ def test_quick_study_refines_the_explicit_activation_and_sets_only_the_refined_i
     assert [r.substeps for r in study.explicit] == [32, 64]
     for r in study.implicit:
         assert (r.friction_smoothing, r.barrier_distance) == (1e-2, 2e-4)
-    # the default run keeps the env's ground: ε_v = 1e-3 m/s, d̂ = 1e-3 of the body's size (not 2e-4)
-    assert study.implicit_default.friction_smoothing == 1e-3
+    # the default run keeps the env's ground: its ε_v, d̂ = 1e-3 of the body's size (not 2e-4)
+    assert study.implicit_default.friction_smoothing == FRICTION_SMOOTHING
     assert study.implicit_default.barrier_distance != pytest.approx(2e-4, rel=0.1)
     # 0.1 s of gait: both envs move the worm the same way to within their discretisation error
     assert study.gap_default < 0.1

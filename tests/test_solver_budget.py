@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from energysim.envs import CreatureEnv
-from energysim.solvers import ConvergenceWarning
+pytest.importorskip("gymnasium")
+
+from energysim.envs import CreatureEnv  # noqa: E402
+from energysim.solvers import ConvergenceWarning  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
