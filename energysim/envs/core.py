@@ -296,7 +296,10 @@ class CreatureSimulation:
             )
         ok = keep & torch.isfinite(result.state).all(dim=1)
         new_state = torch.where(ok[:, None], result.state, state)
-        left = torch.full((batch,), float(result.stats.residual), dtype=self.dtype, device=self.device)
+        residuals = result.stats.residuals
+        if residuals is None or residuals.shape != (batch,):
+            residuals = torch.full((batch,), float(result.stats.residual), device=self.device)
+        left = residuals.to(dtype=self.dtype, device=self.device)
         return new_state, ok, ok.to(torch.int64) * result.stats.iterations, left.masked_fill(~ok, 0.0)
 
 

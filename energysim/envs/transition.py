@@ -51,9 +51,9 @@ class Transition:
         numerical_failure: which entries failed, `[B]`, bool.
         solver_iterations: Newton iterations of the solves that made `state` (summed over the
             frame; the count of the batched solve each entry took part in), `[B]`, int64.
-        solver_residual: the largest velocity residual in m/s the frame's solves left
-            (`SolverResult.residual`, the worst over the batched solve each entry took part in;
-            0 for the explicit integrator, which solves nothing, and where failed), `[B]`.
+        solver_residual: the largest velocity residual in m/s the frame's solves left this entry
+            (`SolverResult.residuals`; 0 for the explicit integrator, which solves nothing, and
+            where failed), `[B]`.
     """
 
     state: Tensor

@@ -17,7 +17,9 @@ from energysim.solvers.base import ConvergenceError, ConvergenceWarning
 
 
 def combined(first: SolverResult, second: SolverResult) -> SolverResult:
-    """One report for a step made of two solves: counts add up, the worse residual stands."""
+    """One report for a step made of two solves: counts add up, the worse residual stands (per
+    entry too, where both report them)."""
+    both = first.residuals is not None and second.residuals is not None
     return dataclasses.replace(
         second,
         iterations=first.iterations + second.iterations,
@@ -27,6 +29,7 @@ def combined(first: SolverResult, second: SolverResult) -> SolverResult:
         residual=max(first.residual, second.residual),
         converged=first.converged and second.converged,
         stalled=first.stalled or second.stalled,
+        residuals=torch.maximum(first.residuals, second.residuals) if both else None,
     )
 
 

@@ -39,6 +39,8 @@ class SolverResult:
         tol: the tolerance in m/s.
         stalled: whether some entry that did not reach `tol` was stopped before `max_iter` because
             its iterations no longer made progress beyond the rounding of E and ∇E (`Stagnation`).
+        residuals: the final velocity residual of each batch entry `[B]`, in m/s, where the solver
+            reports them (None for an unrolled solve).
     """
 
     x: Tensor
@@ -51,6 +53,7 @@ class SolverResult:
     solver: str
     tol: float
     stalled: bool = False
+    residuals: Tensor | None = None
 
     def summary(self) -> str:
         """One line with every figure, for logs and warnings."""
@@ -151,6 +154,7 @@ class Solver:
             solver=self.name,
             tol=self.tol,
             stalled=stalled,
+            residuals=residual.detach(),
         )
         if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
             raise ConvergenceError("non-finite positions or residual: " + result.summary())
