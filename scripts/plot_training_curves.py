@@ -25,8 +25,8 @@ FOLDER = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "policy_t
 # the PPO runs compared in docs/training.md (label, curve file)
 DEFAULT_CURVES = (
     ("explicit (leapfrog)", FOLDER / "curve_ppo_leapfrog.csv"),
-    ("implicit, converged solves", FOLDER / "curve_ppo_implicit.csv"),
-    ("implicit, budget 4 Newton it.", FOLDER / "curve_ppo_implicit_budget4.csv"),
+    ("implicit, solved to 1e-4 m/s, ε_v = 1e-3 m/s", FOLDER / "curve_ppo_implicit.csv"),
+    ("implicit, 4 Newton it./step, ε_v = 5e-3 m/s", FOLDER / "curve_ppo_implicit_budget4.csv"),
 )
 TITLE = "worm, PPO: explicit env vs implicit env"
 
