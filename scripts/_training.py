@@ -97,6 +97,10 @@ class Task:
         integrator: the env's physics, "implicit_euler" or "leapfrog" (`CreatureEnvConfig`). Either
             way the env itself filters no activation: the controllers do (PPO's `--action-tau`,
             the gradient method's smooth gaits), as they did before the envs could.
+        solver_budget: None: every implicit step is solved to `solver_tol`. An integer k >= 1: at
+            most k Newton iterations per physics step, the last iterate kept
+            (`CreatureEnvConfig.solver_budget`). Only with the implicit integrator: an explicit
+            step solves nothing.
     """
 
     creature: str = "worm"
@@ -105,6 +109,7 @@ class Task:
     solver_tol: float = 1e-4
     solver_compile: bool = False
     integrator: str = "implicit_euler"
+    solver_budget: int | None = None
 
     def __post_init__(self) -> None:
         from energysim.creatures import CREATURES
@@ -118,6 +123,13 @@ class Task:
             raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
         if self.integrator not in ("implicit_euler", "leapfrog"):
             raise ValueError(f"integrator must be 'implicit_euler' or 'leapfrog', got {self.integrator!r}")
+        if self.solver_budget is not None:
+            check_integer(self.solver_budget, "solver_budget", 1)
+            if self.integrator != "implicit_euler":
+                raise ValueError(
+                    f"solver_budget = {self.solver_budget} is for integrator='implicit_euler' (Newton "
+                    f"iterations per step); integrator={self.integrator!r} solves nothing"
+                )
 
     def _env_options(self) -> dict[str, Any]:
         # the env filters no activation: the controllers do (see the module docstring)
@@ -125,6 +137,7 @@ class Task:
             creature=self.creature,
             frame_skip=self.frame_skip,
             solver_tol=self.solver_tol,
+            solver_budget=self.solver_budget,
             solver_compile=self.solver_compile,
             max_episode_steps=self.episode_steps,
             integrator=self.integrator,
@@ -160,6 +173,7 @@ class RunSettings:
     solver_tol: float = 1e-4
     solver_compile: bool = False
     integrator: str = "implicit_euler"
+    solver_budget: int | None = None
 
     def __post_init__(self) -> None:
         self.task  # noqa: B018 - building the task checks its fields
@@ -173,7 +187,13 @@ class RunSettings:
     @property
     def task(self) -> Task:
         return Task(
-            self.creature, self.episode_steps, 1, self.solver_tol, self.solver_compile, self.integrator
+            self.creature,
+            self.episode_steps,
+            1,
+            self.solver_tol,
+            self.solver_compile,
+            self.integrator,
+            self.solver_budget,
         )
 
 
@@ -692,6 +712,12 @@ def common_parser(doc: str, defaults: RunSettings, method: str) -> argparse.Argu
     add("--eval-every", type=int, default=defaults.eval_every, help="env steps between evaluations")
     add("--eval-episodes", type=int, default=defaults.eval_episodes, help="episodes per evaluation")
     add("--solver-tol", type=float, default=defaults.solver_tol, help="Newton–CG tolerance in m/s")
+    add(
+        "--solver-budget",
+        type=int,
+        default=defaults.solver_budget,
+        help="at most this many Newton iterations per physics step, the last iterate kept (implicit only)",
+    )
     add(
         "--compile",
         dest="solver_compile",

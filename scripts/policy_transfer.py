@@ -7,11 +7,13 @@ substeps, inelastic ground projection, Coulomb friction), with the same viscosit
 creature. The deterministic policy (the mean action, `train_ppo.controller`, behind the run's own
 clock features and activation filter) runs the fixed evaluation episodes (`_training.evaluate`) in
 - its own env and the other env at the defaults it was trained with (h = 1/60 s, frame_skip 1, the
-  run's solver tolerance; leapfrog: the stable substep count at rest);
+  run's solver tolerance and Newton budget, `--solver-budget`; leapfrog: the stable substep count at
+  rest);
 - both envs at finer settings, labelled "converged" (`CONVERGED`): implicit with h = 1/240 s ×
-  frame_skip 4 at a solver tolerance of 1e-6 m/s, explicit with 128 substeps. These resolve a slow
-  crawl. A fast gait needs a much smaller implicit step (docs/training.md). The env step stays
-  1/60 s, so the policy's clock, filter and reward are the same.
+  frame_skip 4 at a solver tolerance of 1e-6 m/s with no Newton budget, explicit with 128
+  substeps. These resolve a slow crawl. A fast gait needs a much smaller implicit step
+  (docs/training.md). The env step stays 1/60 s, so the policy's clock, filter and reward are the
+  same.
 
 The retention ratio is the return on the other env over the return on its own env at the same
 settings (default with default, converged with converged); it is undefined (NaN) where the own
@@ -58,6 +60,8 @@ class EnvSettings:
         frame_skip: physics steps per env step.
         solver_tol: Newton–CG velocity-residual tolerance in m/s (implicit only).
         substeps: leapfrog substeps per physics step; None: the env's stable count at rest.
+        solver_budget: at most this many Newton iterations per physics step, the last iterate kept
+            (`CreatureEnvConfig.solver_budget`); None: every step solved to `solver_tol`. Implicit only.
     """
 
     integrator: str
@@ -66,6 +70,7 @@ class EnvSettings:
     frame_skip: int = 1
     solver_tol: float = 1e-4
     substeps: int | None = None
+    solver_budget: int | None = None
 
 
 # the converged settings of each env (module docstring)
@@ -93,6 +98,8 @@ class TransferRow:
         retention: mean_return over the own env's at the same settings (1 on the own env; NaN where
             the own return is not positive).
         seconds: wall time of the evaluation, in s.
+        solver_budget: most Newton iterations per physics step of the implicit env (0: none, every
+            step solved to solver_tol; 0 for the explicit env).
     """
 
     trained_on: str
@@ -111,6 +118,7 @@ class TransferRow:
     newton_per_env_step: float
     retention: float
     seconds: float
+    solver_budget: int = 0
 
 
 @dataclass(frozen=True)
@@ -181,8 +189,14 @@ def load_policy(path: Path) -> Policy:
 
 
 def default_settings(policy: Policy, integrator: str) -> EnvSettings:
-    """The env of `integrator` at the defaults `policy` was trained with (module docstring)."""
-    return EnvSettings(integrator, "default", solver_tol=float(policy.settings["solver_tol"]))
+    """The env of `integrator` at the defaults `policy` was trained with (module docstring): the run's
+    solver tolerance and, for the implicit env, its Newton budget (None where the run had none)."""
+    budget = policy.settings.get("solver_budget") if integrator == "implicit_euler" else None
+    if budget is not None:
+        budget = check_integer(budget, f"{policy.path}: solver_budget", 1)
+    return EnvSettings(
+        integrator, "default", solver_tol=float(policy.settings["solver_tol"]), solver_budget=budget
+    )
 
 
 def transfer_env(
@@ -208,6 +222,7 @@ def transfer_env(
         frame_skip=env.frame_skip,
         dt=env.dt,
         solver_tol=env.solver_tol,
+        solver_budget=env.solver_budget if env.integrator == "implicit_euler" else None,
         solver_compile=compile,
         max_episode_steps=check_integer(episode_steps, "episode_steps", 1),
         integrator=env.integrator,
@@ -266,6 +281,7 @@ def evaluate_transfer(
             frame_skip=env.frame_skip,
             substeps=int(venv.env.simulation.scene.substeps) if env.integrator == "leapfrog" else 0,
             solver_tol=env.solver_tol,
+            solver_budget=(env.solver_budget or 0) if env.integrator == "implicit_euler" else 0,
             episodes=episodes,
             episode_steps=episode_steps,
             mean_return=result.mean_return,
@@ -324,7 +340,8 @@ def cases(policy: Policy, converged: bool) -> list[EnvSettings]:
 def markdown(policy: Policy, rows: Sequence[TransferRow]) -> str:
     """The rows as a markdown table and the retention ratios in a sentence."""
     header = [
-        "evaluated on", "settings", "h (s) × frame_skip", "substeps", "tol (m/s)", "return ± s.e.",
+        "evaluated on", "settings", "h (s) × frame_skip", "substeps", "tol (m/s)", "Newton budget",
+        "return ± s.e.",
         "distance in 2 s (cm)" if rows and rows[0].episode_steps == 120 else "distance (cm)",
         "failures", "Newton it./env step", "retention", "eval time (s)",
     ]
@@ -335,6 +352,7 @@ def markdown(policy: Policy, rows: Sequence[TransferRow]) -> str:
             f"1/{round(1 / row.dt)} × {row.frame_skip}",
             row.substeps or "–",
             f"{row.solver_tol:.0e}" if row.env == "implicit_euler" else "–",
+            row.solver_budget or "–",
             f"{row.mean_return:+.4f} ± {row.return_stderr:.4f}",
             f"{100 * row.distance:+.2f}",
             f"{row.failures}/{row.episodes}",
