@@ -56,6 +56,11 @@ def test_a_bad_budget_is_refused_naming_it(bad: object) -> None:
         CreatureEnv("crawler2d", solver_budget=bad)
 
 
+def test_a_budget_for_the_explicit_integrator_is_refused() -> None:
+    with pytest.raises(ValueError, match="solver_budget = 4 is for the implicit integrators"):
+        CreatureEnv("crawler2d", integrator="leapfrog", solver_budget=4)
+
+
 def test_bench_env_times_a_budget_against_a_reference_solved_to_the_tolerance(tmp_path) -> None:  # noqa: ANN001
     import sys
     from pathlib import Path

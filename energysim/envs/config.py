@@ -141,6 +141,11 @@ class CreatureEnvConfig:
         _check_integer(self.solver_max_iter, "solver_max_iter", 1)
         if self.solver_budget is not None:
             _check_integer(self.solver_budget, "solver_budget", 1)
+            if self.integrator == "leapfrog":
+                raise ValueError(
+                    f"solver_budget = {self.solver_budget} is for the implicit integrators; the leapfrog "
+                    "solves nothing"
+                )
         if not isinstance(self.solver_compile, bool):
             raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
         if self.max_episode_steps is not None:
