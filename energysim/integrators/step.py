@@ -29,8 +29,6 @@ class StepResult:
     stats: SolverResult
 
 
-
-
 def step(
     scene: Scene,
     state: Tensor,

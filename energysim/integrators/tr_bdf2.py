@@ -33,15 +33,11 @@ def combined(first: SolverResult, second: SolverResult) -> SolverResult:
     )
 
 
-
-
 # The most energy a TR-BDF2 step may gain, as a fraction of the kinetic plus deformation energy.
 # On a nonlinear body the scheme is not exactly energy-stable, and its truncation error moves a
 # little energy either way: the swinging cantilever gains at most 0.2 % of it in a step at h = 1/24 s.
 # The trapezoidal overshoot on a flattened body gains 20–500 %.
 ENERGY_GAIN_LIMIT = 1e-2
-
-
 
 
 def gains_energy(
