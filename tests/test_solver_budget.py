@@ -83,6 +83,21 @@ def test_bench_env_times_a_budget_against_a_reference_solved_to_the_tolerance(tm
     assert "fixed budget of at most 2 Newton iterations" in (tmp_path / "bench_env.md").read_text()
 
 
+def test_each_entry_reports_its_own_iterations_when_solved_to_the_tolerance() -> None:
+    # a driven crawler and a resting one, solved to 1e-4 m/s: the resting one converges sooner and
+    # stops costing; its count is its own, not the batched solve's
+    from energysim.envs import CreatureVectorEnv
+
+    env = CreatureVectorEnv(2, "crawler2d", activation_time_constant=0.0)
+    env.reset(seed=0)
+    action = np.zeros((2, env.single_action_space.shape[0]), dtype=np.float32)
+    action[0] = 1.0
+    _, _, _, _, info = env.step(action)
+    iterations, residual = info["solver_iterations"], info["solver_residual"]
+    assert 1 <= iterations[1] < iterations[0]
+    assert residual.max() < 1e-4
+
+
 def test_each_entry_reports_its_own_residual() -> None:
     # a batch of two: one worm driven hard, one left at rest, whose solve converges at once
     from energysim.envs import CreatureVectorEnv

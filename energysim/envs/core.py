@@ -300,7 +300,11 @@ class CreatureSimulation:
         if residuals is None or residuals.shape != (batch,):
             residuals = torch.full((batch,), float(result.stats.residual), device=self.device)
         left = residuals.to(dtype=self.dtype, device=self.device)
-        return new_state, ok, ok.to(torch.int64) * result.stats.iterations, left.masked_fill(~ok, 0.0)
+        taken = result.stats.entry_iterations
+        if taken is None or taken.shape != (batch,):
+            taken = torch.full((batch,), result.stats.iterations, dtype=torch.int64, device=self.device)
+        taken = taken.to(self.device)
+        return new_state, ok, taken.masked_fill(~ok, 0), left.masked_fill(~ok, 0.0)
 
 
 __all__ = [

@@ -50,7 +50,8 @@ class Transition:
         x_velocity: centre-of-mass x displacement over the step / (frame_skip·h), `[B]`, in m/s.
         numerical_failure: which entries failed, `[B]`, bool.
         solver_iterations: Newton iterations of the solves that made `state` (summed over the
-            frame; the count of the batched solve each entry took part in), `[B]`, int64.
+            frame; the iterations of the batched solve this entry took part in, which stop once it
+            has converged), `[B]`, int64.
         solver_residual: the largest velocity residual in m/s the frame's solves left this entry
             (`SolverResult.residuals`; 0 for the explicit integrator, which solves nothing, and
             where failed), `[B]`.

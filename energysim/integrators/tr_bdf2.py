@@ -30,6 +30,11 @@ def combined(first: SolverResult, second: SolverResult) -> SolverResult:
         converged=first.converged and second.converged,
         stalled=first.stalled or second.stalled,
         residuals=torch.maximum(first.residuals, second.residuals) if both else None,
+        entry_iterations=(
+            first.entry_iterations + second.entry_iterations
+            if first.entry_iterations is not None and second.entry_iterations is not None
+            else None
+        ),
     )
 
 

@@ -41,6 +41,8 @@ class SolverResult:
             its iterations no longer made progress beyond the rounding of E and ∇E (`Stagnation`).
         residuals: the final velocity residual of each batch entry `[B]`, in m/s, where the solver
             reports them (None for an unrolled solve).
+        entry_iterations: the iterations each batch entry took part in `[B]`, int64, where the
+            solver counts them (Newton–CG, L-BFGS): an entry stops costing once it has converged.
     """
 
     x: Tensor
@@ -54,6 +56,7 @@ class SolverResult:
     tol: float
     stalled: bool = False
     residuals: Tensor | None = None
+    entry_iterations: Tensor | None = None
 
     def summary(self) -> str:
         """One line with every figure, for logs and warnings."""
@@ -138,9 +141,11 @@ class Solver:
         iterations: int,
         hvps: int,
         stopped: Tensor | None = None,
+        entry_iterations: Tensor | None = None,
     ) -> SolverResult:
         """Build the result; raise on non-finite iterates; warn or raise when not converged.
-        `stopped`: the entries `[B]` stopped early for lack of progress, if any."""
+        `stopped`: the entries `[B]` stopped early for lack of progress, if any; `entry_iterations`:
+        the iterations each entry took part in `[B]`, if counted."""
         worst = float(residual.max()) if residual.numel() else 0.0
         stalled = stopped is not None and bool((stopped & (residual >= self.tol)).any())
         result = SolverResult(
@@ -155,6 +160,7 @@ class Solver:
             tol=self.tol,
             stalled=stalled,
             residuals=residual.detach(),
+            entry_iterations=entry_iterations,
         )
         if not torch.isfinite(x).all() or not torch.isfinite(residual).all():
             raise ConvergenceError("non-finite positions or residual: " + result.summary())

@@ -71,11 +71,13 @@ class LBFGS(Solver):
         stagnation = Stagnation.start(x, energy, residual, LBFGS_STALL_ITERATIONS)
         iterations = 0
         noise = None  # the energy's noise, once a line search has measured it (`line_step`)
+        taken = torch.zeros_like(residual, dtype=torch.int64)  # iterations per entry
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
                 break
             iterations += 1
+            taken = taken + active
             direction = -self._two_loop(gradient, history, inverse_diagonal, scale) * active[:, None, None]
             downhill = _dot(gradient, direction) < 0
             direction = torch.where(downhill[:, None, None], direction, -inverse_diagonal * gradient)
@@ -111,7 +113,7 @@ class LBFGS(Solver):
             energy = new_energy
             stalled = stalled | stuck
         x, residual = stagnation.best_of(x, residual, stalled)
-        return self.finish(objective, x, residual, iterations, 0, stalled)
+        return self.finish(objective, x, residual, iterations, 0, stalled, taken)
 
     @staticmethod
     def _two_loop(

@@ -169,6 +169,8 @@ class NewtonCG(Solver):
         entries = torch.arange(x.shape[0], device=x.device)
         used = [objective]
         noise = None  # the energy's noise, once a line search has measured it (`line_step`)
+        taken = torch.zeros_like(residual, dtype=torch.int64)  # iterations per entry
+        solved_taken = taken
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
@@ -178,6 +180,7 @@ class NewtonCG(Solver):
                 solved_x = solved_x.index_copy(0, entries, x)
                 solved_residual = solved_residual.index_copy(0, entries, residual)
                 solved_stalled = solved_stalled.index_copy(0, entries, stalled)
+                solved_taken = solved_taken.index_copy(0, entries, taken)
                 stagnation = stagnation.rows(rows)
                 entries = entries[rows]
                 objective = self.prepare(root.subset(entries))
@@ -187,7 +190,9 @@ class NewtonCG(Solver):
                 refresh = refresh[rows]
                 active = active[rows]
                 noise = None if noise is None else noise[rows]
+                taken = taken[rows]
             iterations += 1
+            taken = taken + active
             ratio = torch.sqrt(residual / first_residual.clamp_min(torch.finfo(x.dtype).tiny))
             eta = torch.clamp(ratio, max=self.forcing)
             wanted = active & ~steepest
@@ -231,9 +236,10 @@ class NewtonCG(Solver):
             x = solved_x.index_copy(0, entries, x)
             residual = solved_residual.index_copy(0, entries, residual)
             stalled = solved_stalled.index_copy(0, entries, stalled)
+            taken = solved_taken.index_copy(0, entries, taken)
             root.grad_evals = sum(part.grad_evals for part in used)
             root.energy_evals = sum(part.energy_evals for part in used)
-        return self.finish(root, x, residual, iterations, hvps, stalled)
+        return self.finish(root, x, residual, iterations, hvps, stalled, taken)
 
     def direct_limit(self, *, compiled_band: bool = False) -> int:
         """The most DOFs per batch entry a direct solve takes: `direct_max_dofs`, or where that is
