@@ -244,7 +244,8 @@ def markdown(rows: list[Row], threads: int) -> str:
         f"{dynamics}, {threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
         "range. Work: leapfrog substeps per physics step, or Newton iterations per physics step (the "
-        "batched solve's count, its slowest entry) with the largest velocity residual a solve left. "
+        "mean over the entries of each one's own count; the batched solve runs as many as its "
+        "slowest entry) with the largest velocity residual a solve left. "
         f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
         "model four times finer in time, in float64 (the reference's distance beside it).",
         "",
