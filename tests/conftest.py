@@ -1,9 +1,13 @@
-"""Shared fixtures: small scenes, rigid motions, and a fixed random seed."""
+"""Shared fixtures: small scenes, rigid motions, a fixed random seed, and the scripts as modules."""
 
 from __future__ import annotations
 
+import importlib
 import math
+import sys
 from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -55,3 +59,14 @@ def one_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def script_module(name: str) -> ModuleType:
+    """`scripts/<name>.py` as a module. scripts/ is not a package: its modules import each other
+    (`_training`, `_bench`) as top-level modules, so the folder goes on `sys.path`."""
+    if str(SCRIPTS) not in sys.path:
+        sys.path.insert(0, str(SCRIPTS))
+    return importlib.import_module(name)

@@ -8,11 +8,8 @@ ratio is the other return over the own one, and bad input raises errors that nam
 
 from __future__ import annotations
 
-import importlib
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -21,20 +18,16 @@ import torch
 pytest.importorskip("gymnasium")
 pytest.importorskip("stable_baselines3")
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+from conftest import script_module  # noqa: E402
+
 EPISODE_STEPS = 3
 
 
-def _script(name: str) -> ModuleType:
-    # scripts/ is not a package: its modules import each other (_training) as top-level modules
-    if str(SCRIPTS) not in sys.path:
-        sys.path.insert(0, str(SCRIPTS))
-    return importlib.import_module(name)
 
 
-training = _script("_training")
-train_ppo = _script("train_ppo")
-transfer = _script("policy_transfer")
+training = script_module("_training")
+train_ppo = script_module("train_ppo")
+transfer = script_module("policy_transfer")
 
 
 @pytest.fixture(scope="module")

@@ -62,16 +62,9 @@ def test_a_budget_for_the_explicit_integrator_is_refused() -> None:
 
 
 def test_bench_env_times_a_budget_against_a_reference_solved_to_the_tolerance(tmp_path) -> None:  # noqa: ANN001
-    import sys
-    from pathlib import Path
+    from conftest import script_module
 
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))
-    try:
-        import bench_env
-    finally:
-        sys.path.remove(str(scripts))
-    (row,) = bench_env.main(
+    (row,) = script_module("bench_env").main(
         ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "2", "--warmup", "0", "--no-plot"]
         + ["--device", "cpu", "--out", str(tmp_path), "--solver-budget", "2", "--gait-seconds", "0.2"]
     )

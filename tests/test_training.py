@@ -10,13 +10,10 @@ clear errors for bad arguments.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import os
-import sys
 from collections.abc import Iterator
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -24,20 +21,16 @@ import torch
 
 pytest.importorskip("gymnasium")
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+from conftest import script_module  # noqa: E402
+
 FULL = os.environ.get("ENERGYSIM_HEAVY") == "1"
 
 
-def _script(name: str) -> ModuleType:
-    # scripts/ is not a package: its modules import each other (_training) as top-level modules
-    if str(SCRIPTS) not in sys.path:
-        sys.path.insert(0, str(SCRIPTS))
-    return importlib.import_module(name)
 
 
-training = _script("_training")
-train_gradient = _script("train_gradient")
-train_ppo = _script("train_ppo")
+training = script_module("_training")
+train_gradient = script_module("train_gradient")
+train_ppo = script_module("train_ppo")
 
 # Every figure of the curve that does not measure wall time: these continue exactly on resume.
 EXACT_FIELDS = tuple(f for f in training.CURVE_FIELDS if f not in ("wall_seconds", "eval_seconds"))

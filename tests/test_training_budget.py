@@ -9,10 +9,7 @@ rebuilt own env reproduces the run's own evaluation of the checkpoint.
 
 from __future__ import annotations
 
-import importlib
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -21,22 +18,18 @@ import torch
 pytest.importorskip("gymnasium")
 pytest.importorskip("stable_baselines3")
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+from conftest import script_module  # noqa: E402
+
 EPISODE_STEPS = 2
 BUDGET = 2
 
 
-def _script(name: str) -> ModuleType:
-    # scripts/ is not a package: its modules import each other (_training) as top-level modules
-    if str(SCRIPTS) not in sys.path:
-        sys.path.insert(0, str(SCRIPTS))
-    return importlib.import_module(name)
 
 
-training = _script("_training")
-train_ppo = _script("train_ppo")
-transfer = _script("policy_transfer")
-curves = _script("plot_training_curves")
+training = script_module("_training")
+train_ppo = script_module("train_ppo")
+transfer = script_module("policy_transfer")
+curves = script_module("plot_training_curves")
 
 
 @pytest.fixture(scope="module")
