@@ -628,6 +628,24 @@ def headline(
 # --- output -----------------------------------------------------------------------------------------
 
 
+# the columns of the tables that give one chosen setting per scene, optimizer and integrator
+SETTING_HEADER = (
+    "| scene | optimizer | integrator | h (s) | tol (m/s) | wall s per simulated s "
+    "| CPU s per simulated s | error | final error | status |",
+    "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
+)
+
+
+def _setting_row(scene: str, optimizer: str, integrator: str, best: Run | None, missing: str) -> str:
+    """One row of a `SETTING_HEADER` table: the chosen run `best`, or `missing` where there is none."""
+    if best is None:
+        return f"| {scene} | {optimizer} | {integrator} | – | – | {missing} | – | – | – | – |"
+    return (
+        f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | {_cost(best)} | "
+        f"{_e(best.error)} | {_e(best.final_error)} | {best.status} |"
+    )
+
+
 def _cost(r: Run) -> str:
     """Wall and CPU seconds per simulated second, as two table cells."""
     if not finite(r.wall_per_sim_s):
@@ -683,13 +701,12 @@ def fastest(rows: list[Run], accuracy: float) -> list[str]:
         "",
         f"## Fastest setting with error ≤ {accuracy:g} of the body size",
         "",
-        "| scene | optimizer | integrator | h (s) | tol (m/s) | wall s per simulated s "
-        "| CPU s per simulated s | error | final error | status |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
+        *SETTING_HEADER,
     ]
     for scene in scenes:
         for optimizer, integrator in pairs:
             best = headline(rows, scene, optimizer, accuracy, integrator=integrator)
+            missing = ""
             if best is None:
                 series = time_series(rows, scene, integrator)
                 floor = (
@@ -697,15 +714,8 @@ def fastest(rows: list[Run], accuracy: float) -> list[str]:
                     if series
                     else "no tight run"
                 )
-                lines.append(
-                    f"| {scene} | {optimizer} | {integrator} | – | – | none reached it ({floor}) "
-                    "| – | – | – | – |"
-                )
-            else:
-                lines.append(
-                    f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | "
-                    f"{_cost(best)} | {_e(best.error)} | {_e(best.final_error)} | {best.status} |"
-                )
+                missing = f"none reached it ({floor})"
+            lines.append(_setting_row(scene, optimizer, integrator, best, missing))
     return lines
 
 
@@ -719,9 +729,7 @@ def smallest_errors(rows: list[Run], args: argparse.Namespace) -> list[str]:
         "The cheapest run whose error is within 10% of the smallest error of any run of that optimizer "
         "and integrator.",
         "",
-        "| scene | optimizer | integrator | h (s) | tol (m/s) | wall s per simulated s "
-        "| CPU s per simulated s | error | final error | status |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
+        *SETTING_HEADER,
     ]
     for scene in scenes:
         for optimizer, integrator in pairs:
@@ -731,15 +739,7 @@ def smallest_errors(rows: list[Run], args: argparse.Namespace) -> list[str]:
                 if smallest is None
                 else headline(rows, scene, optimizer, 1.1 * smallest.error, integrator=integrator)
             )
-            if best is None:
-                lines.append(
-                    f"| {scene} | {optimizer} | {integrator} | – | – | no run finished | – | – | – | – |"
-                )
-            else:
-                lines.append(
-                    f"| {scene} | {optimizer} | {integrator} | {best.dt} | {best.tol:g} | {_cost(best)} | "
-                    f"{_e(best.error)} | {_e(best.final_error)} | {best.status} |"
-                )
+            lines.append(_setting_row(scene, optimizer, integrator, best, "no run finished"))
     return lines
 
 

@@ -161,6 +161,17 @@ def test_reset_noise_keeps_the_body_just_above_the_ground() -> None:
     assert torch.equal(quiet.state[0], resting_state(quiet.simulation.scene))
 
 
+def _bare_scene_apart(env: CreatureEnv) -> es.Scene:
+    """The crawler's bare body (no viscosity) built apart from `env`, with the env's solver settings
+    and ground: what the env's physics steps must match."""
+    return load_creature("crawler2d").scene(
+        env.config.dt,
+        friction=env.config.friction,
+        solver=es.NewtonCG(tol=env.config.solver_tol, indefinite="shift"),
+        friction_smoothing=env.config.friction_smoothing,
+    )
+
+
 def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity() -> None:
     frame_skip, dt, forward_weight, ctrl_weight = 3, 1 / 60, 2.5, 0.1
     env = CreatureEnv(
@@ -184,13 +195,7 @@ def test_reward_is_its_terms_and_the_forward_term_is_the_centre_of_mass_velocity
     assert np.array_equal(info["activation"], clipped)  # without a time constant, the action
 
     # the same three steps, simulated apart from the env from its start state, with the env's solver
-    creature = load_creature("crawler2d")
-    scene = creature.scene(
-        dt,
-        friction=0.8,
-        solver=es.NewtonCG(tol=1e-4, indefinite="shift"),
-        friction_smoothing=env.config.friction_smoothing,
-    )
+    scene = _bare_scene_apart(env)
     states = [start]
     for _ in range(frame_skip):
         states.append(es.step(scene, states[-1], torch.from_numpy(clipped)).state)
@@ -283,13 +288,7 @@ def test_activation_dynamics_are_the_exact_step_response() -> None:
         assert reward == pytest.approx(info["reward_forward"] + info["reward_ctrl"], abs=1e-15)
 
     # the physics saw the filtered activation of every physics step, not the command
-    creature = load_creature("crawler2d")
-    scene = creature.scene(
-        dt,
-        friction=0.8,
-        solver=es.NewtonCG(tol=1e-4, indefinite="shift"),
-        friction_smoothing=env.config.friction_smoothing,
-    )
+    scene = _bare_scene_apart(env)
     state = start
     for k in range(1, 2 * frame_skip + 1):
         activation = torch.from_numpy(command * (1 - np.exp(-k * dt / tau)))
