@@ -12,8 +12,8 @@ clock features and activation filter) runs the fixed evaluation episodes (`_trai
 - both envs at finer settings, labelled "converged" (`CONVERGED`): implicit with h = 1/240 s ×
   frame_skip 4 at a solver tolerance of 1e-6 m/s with no Newton budget, explicit with 128
   substeps. These resolve a slow crawl. A fast gait needs a much smaller implicit step
-  (docs/training.md). The env step stays 1/60 s, so the policy's clock, filter and reward are the
-  same.
+  (docs/training.md): `--implicit-frame-skip k` sets it to 1/(60·k) s. The env step stays 1/60 s,
+  so the policy's clock, filter and reward are the same.
 
 The retention ratio is the return on the other env over the return on its own env at the same
 settings (default with default, converged with converged); it is undefined (NaN) where the own
@@ -23,6 +23,7 @@ return on the other env, the traces show how its gait differs there.
 
 Run:  python scripts/policy_transfer.py --model out/train_ppo_leapfrog/model.zip --out out/policy_transfer
       python scripts/policy_transfer.py --model MODEL --skip-converged      # the default settings only
+      python scripts/policy_transfer.py --model MODEL --implicit-frame-skip 64   # implicit h = 1/3840 s
       python scripts/policy_transfer.py --model MODEL --quick --out /tmp/t   # 4-step episodes
 Writes to --out: policy_transfer.csv (one row per evaluation), policy_transfer.md (the table and the
 retention ratios), policy_transfer.png (returns and distances), trace.csv.
@@ -326,14 +327,20 @@ def with_retention(rows: Sequence[TransferRow]) -> list[TransferRow]:
     ]
 
 
-def cases(policy: Policy, converged: bool) -> list[EnvSettings]:
+def cases(policy: Policy, converged: bool, implicit_frame_skip: int | None = None) -> list[EnvSettings]:
     """The evaluation envs: own and other at the defaults, then (with `converged`) own and other at
-    the converged settings."""
+    the converged settings; `implicit_frame_skip` k: the implicit env's converged step is 1/(60·k) s
+    instead of 1/240 s (the env step stays 1/60 s)."""
     own = policy.integrator
     other = next(name for name in INTEGRATORS if name != own)
     envs = [default_settings(policy, own), default_settings(policy, other)]
     if converged:
-        envs += [CONVERGED[own], CONVERGED[other]]
+        finer = dict(CONVERGED)
+        if implicit_frame_skip is not None:
+            finer["implicit_euler"] = replace(
+                finer["implicit_euler"], dt=1 / (60 * implicit_frame_skip), frame_skip=implicit_frame_skip
+            )
+        envs += [finer[own], finer[other]]
     return envs
 
 
@@ -395,10 +402,11 @@ def plot(rows: Sequence[TransferRow], path: Path) -> None:
 
 def run(
     model: Path, out: Path, *, quick: bool = False, converged: bool = True, compile: bool = False,
-    episodes: int | None = None, draw: bool = True,
+    episodes: int | None = None, draw: bool = True, implicit_frame_skip: int | None = None,
 ) -> list[TransferRow]:
     """Evaluate the policy at `model` on every case (`cases`), write the outputs to `out` and print the
-    table; returns the rows. `episodes`: None for the run's own evaluation episodes."""
+    table; returns the rows. `episodes`: None for the run's own evaluation episodes;
+    `implicit_frame_skip`: the implicit env's converged physics steps per env step (None: 4)."""
     policy = load_policy(model)
     if episodes is None:
         episodes = int(policy.settings["eval_episodes"])
@@ -409,7 +417,8 @@ def run(
         print(f"{row.env} ({row.settings}): return {row.mean_return:+.4f}, distance "
               f"{100 * row.distance:+.2f} cm, {row.seconds:.0f} s", flush=True)
 
-    rows, traces = evaluate_transfer(policy, cases(policy, converged), episodes, steps, compile, log)
+    envs = cases(policy, converged, implicit_frame_skip)
+    rows, traces = evaluate_transfer(policy, envs, episodes, steps, compile, log)
     text = markdown(policy, rows)
     write_outputs(Path(out), NAME, rows, text, (lambda path: plot(rows, path)) if draw else None)
     write_csv(Path(out) / "trace.csv", traces)
@@ -438,11 +447,16 @@ def main(argv: list[str] | None = None) -> int:
     add("--skip-converged", action="store_true", help="evaluate at the default settings only")
     add("--compile", action="store_true", help="compiled physics evaluations (solver_compile) in every env")
     add("--episodes", type=int, default=None, help="evaluation episodes (default: the run's)")
+    add("--implicit-frame-skip", type=int, default=None,
+        help="the implicit env's converged physics steps per env step, h = 1/(60·k) s (default 4)")
     args = parser.parse_args(argv)
+    if args.implicit_frame_skip is not None:
+        check_integer(args.implicit_frame_skip, "implicit-frame-skip", 1)
     configure_threads(check_integer(args.threads, "threads", 1))
     torch.set_num_threads(args.threads)
     rows = run(args.model, args.out, quick=args.quick, converged=not args.skip_converged,
-               compile=args.compile, episodes=args.episodes, draw=not args.no_plot)
+               compile=args.compile, episodes=args.episodes, draw=not args.no_plot,
+               implicit_frame_skip=args.implicit_frame_skip)
     check(rows)
     return 0
 

@@ -143,6 +143,70 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
+def _padded_levels(dense: torch.Tensor, layout) -> tuple[torch.Tensor, torch.Tensor]:
+    # the level blocks read off dense matrices `[B, N, N]`: each DOF at its padded slot, identity
+    # rows for the padding, then the diagonal and sub-diagonal S×S blocks
+    batch, levels, size = dense.shape[0], layout.num_levels, layout.level_size
+    padded = torch.eye(levels * size, dtype=dense.dtype).repeat(batch, 1, 1)
+    slots = layout.dof_slots
+    padded[:, slots[:, None], slots[None, :]] = dense
+    blocks = padded.reshape(batch, levels, size, levels, size)
+    diagonal = torch.stack([blocks[:, k, :, k] for k in range(levels)], dim=1)
+    lower = torch.stack([blocks[:, k + 1, :, k] for k in range(levels - 1)], dim=1)
+    return diagonal, lower
+
+
+@pytest.mark.parametrize("pinned", [False, True])
+def test_the_compiled_level_hessian_equals_the_dense_one_in_level_blocks(pinned: bool):
+    # assembled straight into the block-tridiagonal solve's level blocks (its path on a GPU): the
+    # worm's levels are padded (not all hold S DOFs), and fixed DOFs are eliminated
+    scene, objective, x = _worm_objective(batch=2)
+    if pinned:
+        free = scene.free.clone()
+        free[[0, 5, 77]] = False
+        objective.free = free
+    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    assert layout.num_levels * layout.level_size > x.shape[1] * 3  # some padding
+    dense = objective.hessian(x).dense(x)
+    objective.compiled = True
+    diagonal, lower = objective.level_hessian(x, layout)
+    expected_diagonal, expected_lower = _padded_levels(dense, layout)
+    tolerance = 1e-9 * float(dense.abs().max())
+    assert torch.allclose(diagonal, expected_diagonal, rtol=0, atol=tolerance)
+    assert torch.allclose(lower, expected_lower, rtol=0, atol=tolerance)
+    if pinned:
+        assert float(dense[0, 5 * 3 + 1, 5 * 3 + 1]) == 1.0  # the dense one's identity row, matched
+
+
+def test_a_compiled_level_solve_takes_the_steps_of_the_eager_one():
+    # `direct="levels"` compiled (the batched path on a GPU, here forced on the CPU): the Newton
+    # directions come from the compiled level blocks, and two steps of 3 worms under random
+    # activations land where the eager level solve lands, with the same iterations
+    from energysim.linalg.linear_solve import choose
+
+    scene = load_creature("worm").scene(1 / 60, 0.8)
+    state = resting_state(scene).reshape(1, -1).expand(3, -1).clone()
+    generator = torch.Generator().manual_seed(1)
+    actions = torch.rand(2, 3, 10, generator=generator, dtype=state.dtype) * 2 - 1
+    results = {}
+    for compile_flag in (False, True):
+        solver = es.NewtonCG(tol=1e-8, direct="levels", indefinite="shift", compile=compile_flag)
+        current, iterations = state, []
+        for action in actions:
+            result = es.step(scene, current, action=action, solver=solver)
+            assert result.stats.converged
+            current = result.state
+            iterations.append(result.stats.iterations)
+        results[compile_flag] = (current, iterations)
+    assert results[True][1] == results[False][1]
+    assert torch.allclose(results[True][0], results[False][0], rtol=0, atol=1e-9)
+    # asked for, the compiled levels are planned; on the CPU "auto" keeps the compiled band solve
+    _, objective, x = _worm_objective(batch=3)
+    plan = choose(objective.element_groups(), x, method="levels", compiled_max_dofs=5000)
+    assert plan.method == "levels" and plan.compiled and plan.layout is not None
+    assert choose(objective.element_groups(), x, compiled_max_dofs=5000).method == "banded"
+
+
 def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one():
     # `indefinite="shift"`: the compiled band path keeps H to factorise H + τ|diag H| again. Full
     # random activations at rest make the worm's H indefinite
@@ -328,7 +392,10 @@ def test_small_matmul_traced_by_the_compiler_equals_the_matrix_product():
     strain_map = strain_map_t.transpose(-1, -2)
     expected = strain_map_t @ (stiffness @ strain_map)
     eager = small_matmul(strain_map_t, small_matmul(stiffness, strain_map))
-    traced = torch.compile(lambda a, s, b: small_matmul(a, small_matmul(s, b)), fullgraph=True)
+    def fused(a: torch.Tensor, s: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return small_matmul(a, small_matmul(s, b, fuse_on_cpu=True), fuse_on_cpu=True)
+
+    traced = torch.compile(fused, fullgraph=True)
     result = traced(strain_map_t, stiffness, strain_map)
     assert torch.equal(eager, expected)
     assert result.shape == expected.shape == (2, 5, 12, 12)

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy
+from energysim.linalg.small_matmul import small_matmul
 
 
 def _norm_and_square(u: Tensor) -> tuple[Tensor, Tensor]:
@@ -101,7 +102,7 @@ class LaggedFriction(ElementEnergy):
 
     def _slip(self, element_positions: Tensor) -> Tensor:
         displacement = element_positions[..., 0, :] - self.previous_positions
-        return (self.projector @ displacement[..., None])[..., 0]
+        return small_matmul(self.projector, displacement[..., None])[..., 0]
 
     def warm_start(self, x_prev: Tensor, candidate: Tensor) -> Tensor:
         """`candidate` with every vertex in contact held at x_n (zero slip).

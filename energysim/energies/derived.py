@@ -188,13 +188,17 @@ def _energy_and_gradient_kernel(term: DensityEnergy, element_positions: Tensor) 
     F = deformation_gradient(element_positions, term.rest_edge_inverse)
     stress, density = density_stress(term.density, F)
     stress = stress * term.rest_volume[:, None, None]
-    return term.rest_volume * density, term.shape_gradient @ stress.transpose(-1, -2)
+    return term.rest_volume * density, small_matmul(term.shape_gradient, stress.transpose(-1, -2))
 
 
 def _hessian_kernel(term: DensityEnergy, element_positions: Tensor) -> Tensor:
     F = deformation_gradient(element_positions, term.rest_edge_inverse)
     stiffness = density_stiffness(term.density, F)
-    return small_matmul(term.weighted_strain_map_t, small_matmul(stiffness, term.weighted_strain_map))
+    return small_matmul(
+        term.weighted_strain_map_t,
+        small_matmul(stiffness, term.weighted_strain_map, fuse_on_cpu=True),
+        fuse_on_cpu=True,
+    )
 
 
 _KERNELS: dict[str, Callable] = {

@@ -72,7 +72,7 @@ class NeoHookean(DensityEnergy):
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
         density, stress = stable_neo_hookean_density_and_stress(F, *self.lame())
         stress = stress * self.rest_volume[:, None, None]
-        return self.rest_volume * density, self.shape_gradient @ stress.transpose(-1, -2)
+        return self.rest_volume * density, small_matmul(self.shape_gradient, stress.transpose(-1, -2))
 
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
         if torch.compiler.is_compiling() and x.device.type == "cpu":
@@ -98,7 +98,11 @@ class NeoHookean(DensityEnergy):
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks V Sᵀ ∂²ψ/∂F² S, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.
-        Compiled on the CPU, its two products fuse into the generated loops (`small_matmul`)."""
+        Compiled, its two products fuse into the generated loops (`small_matmul`)."""
         F = deformation_gradient(element_positions, self.rest_edge_inverse)
         stiffness = stable_neo_hookean_stress_hessian(F, *self.lame())
-        return small_matmul(self.weighted_strain_map_t, small_matmul(stiffness, self.weighted_strain_map))
+        return small_matmul(
+            self.weighted_strain_map_t,
+            small_matmul(stiffness, self.weighted_strain_map, fuse_on_cpu=True),
+            fuse_on_cpu=True,
+        )

@@ -38,12 +38,13 @@ from energysim.fem.kinematics import (
     shape_gradients,
     simplex_rest_frame,
 )
+from energysim.linalg.small_matmul import small_matmul
 from energysim.mesh import SimplexMesh
 
 
 def strain_rate(F: Tensor, rate: Tensor) -> Tensor:
     """Ė = sym(Fᵀ Ḟ), the rate of the Green strain, shape `[..., d, d]`, in 1/s."""
-    product = F.transpose(-1, -2) @ rate
+    product = small_matmul(F.transpose(-1, -2), rate)
     return 0.5 * (product + product.transpose(-1, -2))
 
 
@@ -94,7 +95,7 @@ class Viscosity(DissipativeEnergy):
         """∂D/∂v `[B, n, d]` in N: minus the viscous forces (closed form, checked against autograd)."""
         F, rate = self._deformation_and_rate(x, v)
         stress = viscous_stress(F, rate, self.viscosity) * self.rest_volume[:, None, None]
-        corner = self.shape_gradient @ stress.transpose(-1, -2)  # [B, m, k, d]: V P ∇N_b
+        corner = small_matmul(self.shape_gradient, stress.transpose(-1, -2))  # [B, m, k, d]: V P ∇N_b
         return scatter_vertices(corner, self.element_vertices, x.shape[1])
 
     def batch_last_dissipation_gradient(
@@ -152,9 +153,9 @@ class LaggedViscosity(ElementEnergy):
     ) -> tuple[Tensor, Tensor]:
         """`element_energy` `[B, m]` in J and 2ηV/h · F_n S ∇N_b per corner `[B, m, k, d]` in N."""
         strain = self._strain(element_positions)
-        stress = 2.0 * self.weight[:, None, None] * (self.start_gradient @ strain)
+        stress = 2.0 * self.weight[:, None, None] * small_matmul(self.start_gradient, strain)
         energy = self.weight * strain.square().sum(dim=(-1, -2))
-        return energy, self.shape_gradient @ stress.transpose(-1, -2)
+        return energy, small_matmul(self.shape_gradient, stress.transpose(-1, -2))
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Constant blocks (ηV/h)[(F_nF_nᵀ)_kl ∇N_b·∇N_c + (F_n∇N_c)_k (F_n∇N_b)_l], shape

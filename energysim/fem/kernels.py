@@ -31,6 +31,7 @@ from energysim.fem.materials import (
     smith_parameters,
     y_minus_log1p,
 )
+from energysim.linalg.small_matmul import small_matmul
 
 # --- stable neo-Hookean ----------------------------------------------------------------------
 
@@ -279,8 +280,8 @@ def viscous_stress(F: Tensor, rate: Tensor, viscosity: Tensor) -> Tensor:
     Args:
         F, rate: F and Ḟ (1/s), shape `[..., d, d]`; viscosity: η in Pa·s.
     """
-    product = F.transpose(-1, -2) @ rate
-    return viscosity * (F @ (product + product.transpose(-1, -2)))
+    product = small_matmul(F.transpose(-1, -2), rate)
+    return viscosity * small_matmul(F, product + product.transpose(-1, -2))
 
 
 def viscous_stress_entries(
@@ -309,8 +310,8 @@ def lagged_viscosity_hessian_blocks(start_gradient: Tensor, shape_gradient: Tens
     batch, elements, dim, _ = F.shape
     corners = shape_gradient.shape[-2]
     dots = shape_gradient @ shape_gradient.transpose(-1, -2)  # [m, k, k]
-    mapped = shape_gradient @ F.transpose(-1, -2)  # [B, m, k, d]: F ∇N_c
-    gram = F @ F.transpose(-1, -2)  # [B, m, d, d]
+    mapped = small_matmul(shape_gradient, F.transpose(-1, -2))  # [B, m, k, d]: F ∇N_c
+    gram = small_matmul(F, F.transpose(-1, -2))  # [B, m, d, d]
     first = dots[None, :, :, None, :, None] * gram[:, :, None, :, None, :]  # [B, m, b, k, c, l]
     block = first + torch.einsum("xmck,xmbl->xmbkcl", mapped, mapped)
     block = weight[None, :, None, None, None, None] * block

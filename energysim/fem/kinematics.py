@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from energysim.linalg.small_matmul import small_matmul
+
 
 def edge_matrix(element_positions: Tensor) -> Tensor:
     """Edge matrices [x1 - x0, ..., xd - x0] as columns.
@@ -51,7 +53,7 @@ def deformation_gradient(element_positions: Tensor, rest_edge_inverse: Tensor) -
     Returns:
         F, shape `[..., m, d, d]`, dimensionless.
     """
-    return edge_matrix(element_positions) @ rest_edge_inverse
+    return small_matmul(edge_matrix(element_positions), rest_edge_inverse)
 
 
 def shape_gradients(rest_edge_inverse: Tensor) -> Tensor:

@@ -173,9 +173,10 @@ class LinearSolvePlan:
 
     Attributes:
         method: "dense", "banded", "levels" or "cg".
-        layout: the level layout whose band ordering "banded" factorises in (None otherwise).
-        compiled: assemble H by a compiled function (`Objective.band_hessian` / `dense_hessian`)
-            rather than from the eager Hessian operator.
+        layout: the level layout whose band ordering "banded" factorises in, or whose level blocks
+            a compiled "levels" assembles (None otherwise).
+        compiled: assemble H by a compiled function (`Objective.band_hessian`, `level_hessian`,
+            `dense_hessian`) rather than from the eager Hessian operator.
     """
 
     method: str
@@ -229,11 +230,11 @@ def choose(
         max_dofs: the most DOFs per batch entry a direct solve of an eagerly assembled H takes;
             larger systems take CG. 0 turns direct solves off.
         compiled_max_dofs: where a compiled function can assemble H, the most DOFs per batch entry
-            it assembles into band storage (dense matrices keep `max_dofs`); None: eager only.
+            it assembles into band storage (dense matrices and level blocks keep `max_dofs`); None:
+            eager only.
 
     Returns:
-        the plan; with `compiled_max_dofs` its `compiled` says whether the compiled assembly serves
-        (the level blocks are assembled eagerly only).
+        the plan; with `compiled_max_dofs` its `compiled` says whether the compiled assembly serves.
     """
     size = like.shape[1] * like.shape[2]
     if compiled_max_dofs is not None and size <= compiled_max_dofs:
@@ -241,7 +242,9 @@ def choose(
         band = _band_layout(chosen, element_groups, like)
         if band is not None:
             return LinearSolvePlan("banded", band, compiled=True)
-        if chosen != "levels" and size <= max_dofs:
+        if size <= max_dofs:
+            if chosen == "levels" and element_groups:
+                return LinearSolvePlan("levels", level_layout_of(element_groups, like), compiled=True)
             return LinearSolvePlan("dense", compiled=True)
     if size > max_dofs:
         return CG_PLAN

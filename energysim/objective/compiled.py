@@ -8,13 +8,14 @@ its gradient, a run of explicit leapfrog substeps (`energysim.integrators.explic
 apart (TR-BDF2's energy check), a line search's first trial (the CCD step limit, then the energy,
 gradient, slopes and residual where it lands), the warm start's candidates cut back to
 admissible steps with their energies, and the Hessian of a small system, its element blocks
-scattered straight into a dense `[B, N, N]` matrix or into LAPACK's band storage
-(`energysim.linalg.banded`), no CSR in between.
+scattered straight into a dense `[B, N, N]` matrix, into LAPACK's band storage
+(`energysim.linalg.banded`) or into the level blocks of the block-tridiagonal solve
+(`energysim.linalg.level_storage`, the batched path on a GPU), no CSR in between.
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
-kicks of `energysim.objective.batch_last`; only the Hessian's scatter into dense or band storage
-is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk
-to 1e-10 m with the same iterations.
+kicks of `energysim.objective.batch_last`; only the Hessian's scatter into its storage is written
+here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m
+with the same iterations.
 
 Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
 over a 5 s walk): the worm 42.5 → 11.8, the 2D crawler 22.1 → 8.5 and the 2D walker 25.6 → 10.2
@@ -46,6 +47,13 @@ from energysim.linalg.banded import (
     eliminate_fixed_in_bands,
 )
 from energysim.linalg.block_tridiagonal import LevelLayout
+from energysim.linalg.level_storage import (
+    eliminate_fixed_in_levels,
+    level_diagonal_positions,
+    level_length,
+    level_positions,
+    padding_identity,
+)
 from energysim.objective import batch_last, evaluation
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH, BatchLastPlan, batch_last_plan
 from energysim.objective.derivatives import element_groups
@@ -63,6 +71,7 @@ __all__ = [
     "energy_and_gradient",
     "has_closed_forms",
     "leapfrog",
+    "level_hessian",
     "step_limit",
     "term_energies",
     "trial",
@@ -364,3 +373,29 @@ def band_hessian(
     if not bool(free.all()):
         bands = eliminate_fixed_in_bands(bands, layout, (~free)[:, None].expand(n, dim).reshape(-1))
     return bands
+
+
+def level_hessian(
+    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
+) -> tuple[Tensor, Tensor] | None:
+    """∇²E(x) as `layout`'s level blocks (`energysim.linalg.level_storage`): the diagonal blocks
+    `[B, L, S, S]` and the sub-diagonal ones `[B, L−1, S, S]`, padding and fixed DOFs given identity
+    rows, by the compiled function, or None."""
+    batch, n, dim = x.shape
+    groups = tuple(
+        (members, level_positions(layout, terms[members[0]].element_vertices, dim))
+        for members in element_groups(terms)
+    )
+    diagonal = level_diagonal_positions(layout)
+    flat = call("hessian_entries", tuple(terms), action, x, groups, diagonal, level_length(layout))
+    if flat is None:
+        return None
+    flat = flat + padding_identity(layout, x.dtype)
+    if not bool(free.all()):
+        flat = eliminate_fixed_in_levels(flat, layout, (~free)[:, None].expand(n, dim).reshape(-1))
+    levels, size = layout.num_levels, layout.level_size
+    split = levels * size * size
+    return (
+        flat[:, :split].reshape(batch, levels, size, size),
+        flat[:, split:].reshape(batch, levels - 1, size, size),
+    )

@@ -193,6 +193,14 @@ class Objective:
             return None
         return compiled_functions.band_hessian(self.terms, self.action, self.free, x, layout)
 
+    def level_hessian(self, x: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor] | None:
+        """∇²E(x) as `layout`'s diagonal `[B, L, S, S]` and sub-diagonal `[B, L−1, S, S]` level blocks
+        (`energysim.linalg.block_tridiagonal`) by the compiled function, fixed DOFs eliminated; None
+        as for `dense_hessian`."""
+        if not self._compiles(hessian=True):
+            return None
+        return compiled_functions.level_hessian(self.terms, self.action, self.free, x, layout)
+
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False
     ) -> HessianOperator:

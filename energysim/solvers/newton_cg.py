@@ -33,6 +33,7 @@ from energysim.linalg.linear_solve import (
     BandCholesky,
     DenseCholesky,
     KeptBandFactors,
+    LevelCholesky,
     LinearSolvePlan,
     choose,
     eager_system,
@@ -83,7 +84,8 @@ class NewtonCG(Solver):
             S = 27, u = 44; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
             levels for batches of them (≈ 6× faster per Newton direction at B = 16); with
             `compile=True` banded on the CPU for any batch (its Hessian is then assembled in band
-            storage by a compiled function).
+            storage by a compiled function); on a GPU, compiled, the level blocks are assembled by
+            a compiled function too (`Objective.level_hessian`).
         compact_below: in a batch, once at most this fraction of the entries still iterates, go on
             with those alone (`Objective.subset`: the step builds their objective from their slice
             of the state), instead of computing on every entry until the slowest has converged.
@@ -313,7 +315,7 @@ class NewtonCG(Solver):
         self, objective: Objective, rhs: Tensor, x: Tensor, wanted: Tensor, refresh: Tensor | None = None
     ) -> tuple[Tensor, Tensor] | None:
         """The direct solve from the Hessian a compiled function assembles (`Objective.band_hessian`,
-        `Objective.dense_hessian`): the directions and which entries they solved, or None where the
+        `level_hessian`, `dense_hessian`): the directions and which entries they solved, or None where the
         plan is not a compiled one or the objective has no compiled Hessian (then `_direct`). On the
         band path with `reuse_factorization`, from the kept factors where they serve."""
         if not objective.compiled or self.hessian != "elements" or self.project_hessian:
@@ -326,6 +328,11 @@ class NewtonCG(Solver):
             if dense is None:
                 return None
             return solve_with_shifts(DenseCholesky(dense), rhs, wanted, self._shifts())
+        if plan.method == "levels":
+            levels = objective.level_hessian(x, plan.layout)
+            if levels is None:
+                return None
+            return solve_with_shifts(LevelCholesky(*levels, plan.layout), rhs, wanted, self._shifts())
         if self.reuse_factorization is not None:
             kept = self._kept_directions(objective, x, plan.layout, rhs, wanted, refresh)
             if kept is not None:
