@@ -116,6 +116,13 @@ def test_converged_envs_keep_the_env_step_and_a_wrong_one_is_refused(checkpoint:
     wrong = transfer.EnvSettings("implicit_euler", "converged", dt=1 / 240, frame_skip=2)
     with pytest.raises(ValueError, match=r"frame_skip × dt.*2 ×"):
         transfer.transfer_env(policy, wrong, 1, EPISODE_STEPS)
+    # `--implicit-frame-skip k`: the converged implicit step is 1/(60·k) s, the env step still 1/60 s
+    finer = transfer.cases(policy, True, implicit_frame_skip=64)
+    implicit = next(env for env in finer if env.label == "converged" and env.integrator == "implicit_euler")
+    assert (implicit.frame_skip, implicit.dt, implicit.solver_tol) == (64, 1 / 3840, 1e-6)
+    assert implicit.frame_skip * implicit.dt == pytest.approx(1 / 60, rel=1e-12)
+    with pytest.raises(ValueError, match="implicit-frame-skip must be an integer >= 1"):
+        transfer.main(["--model", str(checkpoint), "--implicit-frame-skip", "0"])
 
 
 def test_bad_model_files_are_named(tmp_path: Path, checkpoint: Path) -> None:
