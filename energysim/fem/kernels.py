@@ -313,6 +313,9 @@ def lagged_viscosity_hessian_blocks(start_gradient: Tensor, shape_gradient: Tens
     mapped = small_matmul(shape_gradient, F.transpose(-1, -2))  # [B, m, k, d]: F ∇N_c
     gram = small_matmul(F, F.transpose(-1, -2))  # [B, m, d, d]
     first = dots[None, :, :, None, :, None] * gram[:, :, None, :, None, :]  # [B, m, b, k, c, l]
-    block = first + torch.einsum("xmck,xmbl->xmbkcl", mapped, mapped)
+    # (F∇N_c)_k (F∇N_b)_l as a broadcast product: as an einsum it was a batched matrix product with an
+    # inner size of 1, which a GPU ran as one cuBLAS call over B·m blocks (the same values; eagerly on
+    # the CPU the same 4.9 ms for 64 worms)
+    block = first + mapped.transpose(-1, -2)[:, :, None, :, :, None] * mapped[:, :, :, None, None, :]
     block = weight[None, :, None, None, None, None] * block
     return block.reshape(batch, elements, corners * dim, corners * dim)
