@@ -45,6 +45,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from energysim.cpu import configure as configure_cpu
 from energysim.envs import SB3VecEnv
 
 # the evaluation episodes' seeds: EVAL_SEED + i, the same for every method, run and evaluation
@@ -753,7 +754,7 @@ def script_main(
     check_integer(args.threads, "threads", 1)
     flags = vars(args)
     settings = settings_type(**{f.name: flags[f.name] for f in fields(settings_type) if f.name in flags})
-    torch.set_num_threads(args.threads)
+    configure_cpu(args.threads)  # the threads, and freed buffers kept for reuse (`energysim.cpu`)
     curve = train(settings, args.out, resume=args.resume, progress=not args.quiet)
     print_outcome(method, outputs(settings, args.out, curve, render=not args.no_render), curve)
     return 0
@@ -832,7 +833,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--random-episodes", type=int, default=4, help="episodes of the random policy; 0: none")
     add("--threads", type=int, default=1, help="torch intra-op threads")
     args = parser.parse_args(argv)
-    torch.set_num_threads(check_integer(args.threads, "threads", 1))
+    configure_cpu(check_integer(args.threads, "threads", 1))
     check_integer(args.random_episodes, "random_episodes", 0)
     points = [point for path in args.curves for point in read_curve(path)]
     task = Task(args.creature, args.episode_steps)
