@@ -106,6 +106,16 @@ def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     assert torch.equal(objective.dense_hessian(x)[0, 0], torch.eye(scene.num_vertices * 3, dtype=x.dtype)[0])
 
 
+def _pinned_worm_objective(pinned: bool) -> tuple[es.Scene, Objective, torch.Tensor]:
+    """`_worm_objective` of 2 entries, with vertices 0, 5 and 77 fixed where `pinned`."""
+    scene, objective, x = _worm_objective(batch=2)
+    if pinned:
+        free = scene.free.clone()
+        free[[0, 5, 77]] = False
+        objective.free = free
+    return scene, objective, x
+
+
 def _without_corner(bands: torch.Tensor) -> torch.Tensor:
     # band storage `[B, N, u + 1]` with the corner slots LAPACK never reads (j + r ≥ N) zeroed
     size, width = bands.shape[1], bands.shape[2]
@@ -116,13 +126,8 @@ def _without_corner(bands: torch.Tensor) -> torch.Tensor:
 def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: bool):
     # assembled straight into band storage: the muscle and elastic blocks of the same elements are
     # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated
-    scene, objective, x = _worm_objective(batch=2)
-    if pinned:
-        free = scene.free.clone()
-        free[[0, 5, 77]] = False
-        objective.free = free
-    solver = es.NewtonCG()
-    layout = solver._layout(objective.element_groups(), x)
+    scene, objective, x = _pinned_worm_objective(pinned)
+    layout = es.NewtonCG()._layout(objective.element_groups(), x)
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
     bands = objective.band_hessian(x, layout)
@@ -160,11 +165,7 @@ def _padded_levels(dense: torch.Tensor, layout) -> tuple[torch.Tensor, torch.Ten
 def test_the_compiled_level_hessian_equals_the_dense_one_in_level_blocks(pinned: bool):
     # assembled straight into the block-tridiagonal solve's level blocks (its path on a GPU): the
     # worm's levels are padded (not all hold S DOFs), and fixed DOFs are eliminated
-    scene, objective, x = _worm_objective(batch=2)
-    if pinned:
-        free = scene.free.clone()
-        free[[0, 5, 77]] = False
-        objective.free = free
+    _, objective, x = _pinned_worm_objective(pinned)
     layout = es.NewtonCG()._layout(objective.element_groups(), x)
     assert layout.num_levels * layout.level_size > x.shape[1] * 3  # some padding
     dense = objective.hessian(x).dense(x)

@@ -3,7 +3,7 @@
 `energysim.linalg.block_tridiagonal` factorises a Hessian from its diagonal `[B, L, S, S]` and
 sub-diagonal `[B, L−1, S, S]` blocks over breadth-first vertex levels. Eagerly these are gathered
 from an assembled CSR matrix (`gather_blocks`); the compiled Hessian
-(`energysim.objective.compiled.level_hessian`) instead scatters every element block straight into one
+(`energysim.objective.compiled_hessian.level_hessian`) instead scatters every element block straight into one
 flat buffer per batch entry, L diagonal blocks then L − 1 sub-diagonal ones, laid out as
 `gather_blocks` lays them out, with no CSR matrix in between. The maps here say where each entry
 lands; they are built once per layout and cached.

@@ -8,9 +8,8 @@ its gradient, a run of explicit leapfrog substeps (`energysim.integrators.explic
 apart (TR-BDF2's energy check), a line search's first trial (the CCD step limit, then the energy,
 gradient, slopes and residual where it lands), the warm start's candidates cut back to
 admissible steps with their energies, and the Hessian of a small system, its element blocks
-scattered straight into a dense `[B, N, N]` matrix, into LAPACK's band storage
-(`energysim.linalg.banded`) or into the level blocks of the block-tridiagonal solve
-(`energysim.linalg.level_storage`, the batched path on a GPU), no CSR in between.
+scattered straight into the storage a direct solve factorises, no CSR in between
+(`energysim.objective.compiled_hessian` says where each entry goes: dense, band or level blocks).
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
 kicks of `energysim.objective.batch_last`; only the Hessian's scatter into its storage is written
@@ -39,39 +38,20 @@ from torch import Tensor
 
 from energysim.contact.projection import project_contacts
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
-from energysim.linalg.assembly import dof_indices
-from energysim.linalg.banded import (
-    band_diagonal_positions,
-    band_length,
-    band_positions,
-    eliminate_fixed_in_bands,
-)
-from energysim.linalg.block_tridiagonal import LevelLayout
-from energysim.linalg.level_storage import (
-    eliminate_fixed_in_levels,
-    level_diagonal_positions,
-    level_length,
-    level_positions,
-    padding_identity,
-)
 from energysim.objective import batch_last, evaluation
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH, BatchLastPlan, batch_last_plan
-from energysim.objective.derivatives import element_groups
 from energysim.objective.evaluation import step_limit
 
 __all__ = [
     "BATCH_LAST_MIN_BATCH",
     "LEAPFROG_CHUNK",
-    "band_hessian",
     "batch_last_plan",
     "call",
     "cut_back",
-    "dense_hessian",
     "energy",
     "energy_and_gradient",
     "has_closed_forms",
     "leapfrog",
-    "level_hessian",
     "step_limit",
     "term_energies",
     "trial",
@@ -329,73 +309,3 @@ def _leapfrog_batch_last(
             return None
         x, v = result
     return x.T.reshape(batch, n, dim), v.T.reshape(batch, n, dim)
-
-
-def dense_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor
-) -> Tensor | None:
-    """∇²E(x) as dense `[B, n·d, n·d]` matrices, fixed DOFs eliminated (identity rows and columns),
-    by the compiled function, or None."""
-    batch, n, dim = x.shape
-    size = n * dim
-    groups = []
-    for members in element_groups(terms):
-        dofs = dof_indices(terms[members[0]].element_vertices, dim)
-        groups.append((members, (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)))
-    diagonal = torch.arange(size, device=x.device) * (size + 1)
-    flat = call("hessian_entries", tuple(terms), action, x, tuple(groups), diagonal, size * size)
-    if flat is None:
-        return None
-    dense = flat.reshape(batch, size, size)
-    if not bool(free.all()):
-        # fixed DOFs get the rows and columns of the identity, as in `energysim.linalg.assembly.assemble`
-        fixed = (~free)[:, None].expand(n, dim).reshape(-1)
-        kept = (~fixed).to(x.dtype)
-        dense = dense * kept[:, None] * kept[None, :] + torch.diag(fixed.to(x.dtype))
-    return dense
-
-
-def band_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
-) -> Tensor | None:
-    """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
-    eliminated, by the compiled function, or None."""
-    batch, n, dim = x.shape
-    groups = tuple(
-        (members, band_positions(layout, terms[members[0]].element_vertices, dim))
-        for members in element_groups(terms)
-    )
-    diagonal = band_diagonal_positions(layout)
-    flat = call("hessian_entries", tuple(terms), action, x, groups, diagonal, band_length(layout))
-    if flat is None:
-        return None
-    bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
-    if not bool(free.all()):
-        bands = eliminate_fixed_in_bands(bands, layout, (~free)[:, None].expand(n, dim).reshape(-1))
-    return bands
-
-
-def level_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
-) -> tuple[Tensor, Tensor] | None:
-    """∇²E(x) as `layout`'s level blocks (`energysim.linalg.level_storage`): the diagonal blocks
-    `[B, L, S, S]` and the sub-diagonal ones `[B, L−1, S, S]`, padding and fixed DOFs given identity
-    rows, by the compiled function, or None."""
-    batch, n, dim = x.shape
-    groups = tuple(
-        (members, level_positions(layout, terms[members[0]].element_vertices, dim))
-        for members in element_groups(terms)
-    )
-    diagonal = level_diagonal_positions(layout)
-    flat = call("hessian_entries", tuple(terms), action, x, groups, diagonal, level_length(layout))
-    if flat is None:
-        return None
-    flat = flat + padding_identity(layout, x.dtype)
-    if not bool(free.all()):
-        flat = eliminate_fixed_in_levels(flat, layout, (~free)[:, None].expand(n, dim).reshape(-1))
-    levels, size = layout.num_levels, layout.level_size
-    split = levels * size * size
-    return (
-        flat[:, :split].reshape(batch, levels, size, size),
-        flat[:, split:].reshape(batch, levels - 1, size, size),
-    )

@@ -11,7 +11,7 @@ from torch import Tensor
 from energysim.energies.base import EnergyTerm
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.objective import compiled as compiled_functions
-from energysim.objective import evaluation
+from energysim.objective import compiled_hessian, evaluation
 from energysim.objective.derivatives import HessianOperator, element_groups, hessian_operator
 
 
@@ -184,14 +184,14 @@ class Objective:
         None unless `compiled` and every term has closed-form blocks (then use `hessian`)."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_functions.dense_hessian(self.terms, self.action, self.free, x)
+        return compiled_hessian.dense_hessian(self.terms, self.action, self.free, x)
 
     def band_hessian(self, x: Tensor, layout: LevelLayout) -> Tensor | None:
         """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.linalg.banded`) by the compiled
         function, fixed DOFs eliminated; None as for `dense_hessian`."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_functions.band_hessian(self.terms, self.action, self.free, x, layout)
+        return compiled_hessian.band_hessian(self.terms, self.action, self.free, x, layout)
 
     def level_hessian(self, x: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor] | None:
         """∇²E(x) as `layout`'s diagonal `[B, L, S, S]` and sub-diagonal `[B, L−1, S, S]` level blocks
@@ -199,7 +199,7 @@ class Objective:
         as for `dense_hessian`."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_functions.level_hessian(self.terms, self.action, self.free, x, layout)
+        return compiled_hessian.level_hessian(self.terms, self.action, self.free, x, layout)
 
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False
