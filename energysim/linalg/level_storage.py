@@ -71,14 +71,22 @@ def padding_identity(layout: LevelLayout, dtype: torch.dtype) -> Tensor:
 
 def eliminate_fixed_in_levels(flat: Tensor, layout: LevelLayout, fixed_dofs: Tensor) -> Tensor:
     """Level storage `flat` `[B, (2L − 1)·S²]` with the rows and columns of `fixed_dofs` (`[N]` bool,
-    DOF order) replaced by the identity's, as `energysim.linalg.assembly.assemble` eliminates them."""
-    size, levels = layout.level_size, layout.num_levels
-    slot_fixed = torch.zeros(levels * size, dtype=torch.bool, device=flat.device)
-    slot_fixed[layout.dof_slots] = fixed_dofs
-    kept = (~slot_fixed).to(flat.dtype).reshape(levels, size)
-    diagonal = kept[:, :, None] * kept[:, None, :]
-    lower = kept[1:, :, None] * kept[:-1, None, :]
-    mask = torch.cat([diagonal.reshape(-1), lower.reshape(-1)])
-    identity = torch.zeros_like(mask)
-    identity[level_diagonal_positions(layout)[fixed_dofs]] = 1.0
+    DOF order) replaced by the identity's, as `energysim.linalg.assembly.assemble` eliminates them.
+    The mask and the identity are built once per layout and set of fixed DOFs, as for the band
+    storage (`energysim.linalg.banded.eliminate_fixed_in_bands`)."""
+
+    def build() -> Tensor:
+        size, levels = layout.level_size, layout.num_levels
+        slot_fixed = torch.zeros(levels * size, dtype=torch.bool, device=flat.device)
+        slot_fixed[layout.dof_slots] = fixed_dofs
+        kept = (~slot_fixed).to(flat.dtype).reshape(levels, size)
+        diagonal = kept[:, :, None] * kept[:, None, :]
+        lower = kept[1:, :, None] * kept[:-1, None, :]
+        mask = torch.cat([diagonal.reshape(-1), lower.reshape(-1)])
+        identity = torch.zeros_like(mask)
+        identity[level_diagonal_positions(layout)[fixed_dofs]] = 1.0
+        return torch.stack([mask, identity])
+
+    key = ("fixed", fixed_dofs.cpu().numpy().tobytes(), flat.dtype, flat.device)
+    mask, identity = _MAPS.get((layout,), key, build)
     return flat * mask + identity

@@ -30,6 +30,7 @@ from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, level
 
 if TYPE_CHECKING:
     from energysim.objective.derivatives import HessianOperator
+    from energysim.objective.objective import Objective
 
 # The default DOF limits of a direct solve per batch entry. Assembled eagerly, a direct solve builds
 # dense or level blocks, whose cost grows much faster than CG's. Compiled, the Hessian goes straight
@@ -280,6 +281,22 @@ def eager_system(
     if plan.layout is not None:
         return BandCholesky.from_dense(dense, plan.layout, keep=keep)
     return DenseCholesky(dense)
+
+
+def compiled_system(
+    plan: LinearSolvePlan, objective: Objective, like: Tensor, *, keep: bool = False
+) -> DirectSolve | None:
+    """The direct system of a compiled `plan` (`LinearSolvePlan.compiled`), from the Hessian the
+    objective's compiled function assembles straight into the plan's storage (`Objective.dense_hessian`,
+    `band_hessian`, `level_hessian`) at `like`; None where it has none. `keep`: as for `eager_system`."""
+    if plan.method == "levels":
+        levels = objective.level_hessian(like, plan.layout)
+        return None if levels is None else LevelCholesky(*levels, plan.layout)
+    if plan.layout is not None:
+        bands = objective.band_hessian(like, plan.layout)
+        return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep)
+    dense = objective.dense_hessian(like)
+    return None if dense is None else DenseCholesky(dense)
 
 
 class KeptBandFactors:

@@ -30,12 +30,10 @@ from energysim.linalg.linear_solve import (
     EAGER_DIRECT_MAX_DOFS,
     INDEFINITE_SHIFTS,
     METHODS,
-    BandCholesky,
-    DenseCholesky,
     KeptBandFactors,
-    LevelCholesky,
     LinearSolvePlan,
     choose,
+    compiled_system,
     eager_system,
     level_layout_of,
     solve_with_shifts,
@@ -314,34 +312,21 @@ class NewtonCG(Solver):
     def _compiled_direct(
         self, objective: Objective, rhs: Tensor, x: Tensor, wanted: Tensor, refresh: Tensor | None = None
     ) -> tuple[Tensor, Tensor] | None:
-        """The direct solve from the Hessian a compiled function assembles (`Objective.band_hessian`,
-        `level_hessian`, `dense_hessian`): the directions and which entries they solved, or None where the
-        plan is not a compiled one or the objective has no compiled Hessian (then `_direct`). On the
-        band path with `reuse_factorization`, from the kept factors where they serve."""
+        """The direct solve from the Hessian a compiled function assembles (`compiled_system`): the
+        directions and which entries they solved, or None where the plan is not a compiled one or the
+        objective has no compiled Hessian (then `_direct`). On the band path with
+        `reuse_factorization`, from the kept factors where they serve."""
         if not objective.compiled or self.hessian != "elements" or self.project_hessian:
             return None
         plan = self._plan(objective.element_groups(), x, compiled=True)
         if not plan.compiled:
             return None
-        if plan.layout is None:
-            dense = objective.dense_hessian(x)
-            if dense is None:
-                return None
-            return solve_with_shifts(DenseCholesky(dense), rhs, wanted, self._shifts())
-        if plan.method == "levels":
-            levels = objective.level_hessian(x, plan.layout)
-            if levels is None:
-                return None
-            return solve_with_shifts(LevelCholesky(*levels, plan.layout), rhs, wanted, self._shifts())
-        if self.reuse_factorization is not None:
+        if self.reuse_factorization is not None and plan.method == "banded":
             kept = self._kept_directions(objective, x, plan.layout, rhs, wanted, refresh)
             if kept is not None:
                 return kept
-        bands = objective.band_hessian(x, plan.layout)
-        if bands is None:
-            return None
-        system = BandCholesky.of(bands, plan.layout, keep=bool(self._shifts()))
-        return solve_with_shifts(system, rhs, wanted, self._shifts())
+        system = compiled_system(plan, objective, x, keep=bool(self._shifts()))
+        return None if system is None else solve_with_shifts(system, rhs, wanted, self._shifts())
 
     def _kept_directions(
         self,
