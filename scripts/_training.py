@@ -47,6 +47,7 @@ from tqdm import tqdm
 
 from energysim.cpu import configure as configure_cpu
 from energysim.envs import SB3VecEnv
+from energysim.envs.config import check_integer, check_number
 
 # the evaluation episodes' seeds: EVAL_SEED + i, the same for every method, run and evaluation
 EVAL_SEED = 1_000_000
@@ -64,24 +65,6 @@ INFO_KEYS = (
 
 # controller: (observation [B, o] float32, time of the state [B] in s) -> action [B, a] in [-1, 1]
 Controller = Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-
-def check_integer(value: object, name: str, low: int) -> int:
-    """`value` as an int, or ValueError naming the argument."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    return int(value)
-
-
-def check_number(value: object, name: str, low: float | None = None, strict: bool = False) -> float:
-    """`value` as a finite float (> or >= `low`), or ValueError naming the argument."""
-    ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and math.isfinite(value)
-    if ok and low is not None:
-        ok = value > low if strict else value >= low
-    if not ok:
-        bound = "" if low is None else f" {'>' if strict else '>='} {low}"
-        raise ValueError(f"{name} must be a finite number{bound}, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)

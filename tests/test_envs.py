@@ -493,7 +493,7 @@ def test_bad_arguments_raise_clear_errors() -> None:
     with pytest.raises(ValueError, match="num_markers must be at most"):
         CreatureEnv("worm", num_markers=10_000)
     for tau in (-0.01, float("nan"), float("inf"), "0.05", True):
-        with pytest.raises(ValueError, match="activation_time_constant must be a finite number and >= 0.0 s"):
+        with pytest.raises(ValueError, match="activation_time_constant must be a finite number >= 0.0 s"):
             CreatureEnv("worm", activation_time_constant=tau)
     with pytest.raises(ValueError, match="activation_time_constant"):
         CreatureVectorEnv(2, "worm", activation_time_constant=-1.0)

@@ -32,7 +32,7 @@ from energysim.energies.base import (
 )
 from energysim.mesh import SimplexMesh
 from energysim.mesh.indices import as_indices
-from energysim.mesh.simplex import format_indices
+from energysim.mesh.validation import format_indices
 
 # the fraction of the time of impact a line search may start from (ipc-toolkit's default)
 CCD_SAFETY = 0.8

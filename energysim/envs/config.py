@@ -52,20 +52,25 @@ LEAPFROG_VISCOSITY = BODY_VISCOSITY
 FRICTION_SMOOTHING = 5e-3
 
 
-def _check_integer(value: object, name: str, low: int) -> None:
+def check_integer(value: object, name: str, low: int) -> int:
+    """`value` as an int >= `low`, or ValueError naming `name` (a bool is not an integer here)."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
         raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
 
 
-def _check_number(
-    value: object, name: str, unit: str, low: float | None = None, strict: bool = False
-) -> None:
+def check_number(
+    value: object, name: str, low: float | None = None, *, strict: bool = False, unit: str = ""
+) -> float:
+    """`value` as a finite float (> `low` with `strict`, else >= `low`), or ValueError naming `name`
+    and the `unit` it is read in (e.g. " m/s")."""
     ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and math.isfinite(value)
     if ok and low is not None:
         ok = value > low if strict else value >= low
     if not ok:
-        bound = "" if low is None else f" and {'>' if strict else '>='} {low}"
+        bound = "" if low is None else f" {'>' if strict else '>='} {low}"
         raise ValueError(f"{name} must be a finite number{bound}{unit}, got {value!r}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -130,17 +135,17 @@ class CreatureEnvConfig:
     def __post_init__(self) -> None:
         if self.creature not in CREATURES:
             raise ValueError(f"unknown creature {self.creature!r}; choose one of {CREATURES}")
-        _check_integer(self.frame_skip, "frame_skip", 1)
-        _check_number(self.dt, "dt", " s", 0.0, strict=True)
-        _check_number(self.forward_reward_weight, "forward_reward_weight", "")
-        _check_number(self.ctrl_cost_weight, "ctrl_cost_weight", "", 0.0)
-        _check_number(self.reset_noise_scale, "reset_noise_scale", " m (m/s)", 0.0)
-        _check_number(self.friction, "friction", "", 0.0)
-        _check_number(self.friction_smoothing, "friction_smoothing", " m/s", 0.0, strict=True)
-        _check_number(self.solver_tol, "solver_tol", " m/s", 0.0, strict=True)
-        _check_integer(self.solver_max_iter, "solver_max_iter", 1)
+        check_integer(self.frame_skip, "frame_skip", 1)
+        check_number(self.dt, "dt", 0.0, strict=True, unit=" s")
+        check_number(self.forward_reward_weight, "forward_reward_weight")
+        check_number(self.ctrl_cost_weight, "ctrl_cost_weight", 0.0)
+        check_number(self.reset_noise_scale, "reset_noise_scale", 0.0, unit=" m (m/s)")
+        check_number(self.friction, "friction", 0.0)
+        check_number(self.friction_smoothing, "friction_smoothing", 0.0, strict=True, unit=" m/s")
+        check_number(self.solver_tol, "solver_tol", 0.0, strict=True, unit=" m/s")
+        check_integer(self.solver_max_iter, "solver_max_iter", 1)
         if self.solver_budget is not None:
-            _check_integer(self.solver_budget, "solver_budget", 1)
+            check_integer(self.solver_budget, "solver_budget", 1)
             if self.integrator == "leapfrog":
                 raise ValueError(
                     f"solver_budget = {self.solver_budget} is for the implicit integrators; the leapfrog "
@@ -149,16 +154,16 @@ class CreatureEnvConfig:
         if not isinstance(self.solver_compile, bool):
             raise ValueError(f"solver_compile must be True or False, got {self.solver_compile!r}")
         if self.max_episode_steps is not None:
-            _check_integer(self.max_episode_steps, "max_episode_steps", 1)
-        _check_integer(self.num_markers, "num_markers", 1)
+            check_integer(self.max_episode_steps, "max_episode_steps", 1)
+        check_integer(self.num_markers, "num_markers", 1)
         if self.activation_time_constant is not None:
-            _check_number(self.activation_time_constant, "activation_time_constant", " s", 0.0)
+            check_number(self.activation_time_constant, "activation_time_constant", 0.0, unit=" s")
         if self.viscosity is not None:
-            _check_number(self.viscosity, "viscosity", " Pa·s", 0.0)
+            check_number(self.viscosity, "viscosity", 0.0, unit=" Pa·s")
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
         if self.substeps is not None:
-            _check_integer(self.substeps, "substeps", 1)
+            check_integer(self.substeps, "substeps", 1)
             if self.integrator != "leapfrog":
                 raise ValueError(
                     f"substeps = {self.substeps} is for integrator='leapfrog'; an implicit step takes "

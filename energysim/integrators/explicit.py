@@ -35,7 +35,7 @@ from torch import Tensor
 
 from energysim.contact.obstacles import HalfSpace, Obstacle, SphereObstacle
 from energysim.energies.base import EnergyTerm, is_dissipative, limits_steps
-from energysim.mesh.simplex import format_indices
+from energysim.mesh.validation import format_indices
 from energysim.objective.derivatives import HessianOperator
 from energysim.solvers.base import ConvergenceError
 

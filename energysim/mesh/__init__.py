@@ -2,7 +2,8 @@
 
 from .io import MeshFileError, MeshFileNotFoundError, load_mesh
 from .primitives import kuhn_pattern
-from .simplex import SimplexMesh, TetMesh, TriMesh, format_indices, signed_volumes
+from .simplex import SimplexMesh, TetMesh, TriMesh
+from .validation import format_indices, signed_volumes
 
 __all__ = [
     "SimplexMesh",

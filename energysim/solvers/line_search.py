@@ -62,11 +62,18 @@ def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int =
     return torch.where(largest >= smallest, largest - smallest, torch.zeros_like(energy))
 
 
-def _noise_floor(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
+def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor | None = None) -> Tensor:
     """The allowance for rounding in an Armijo test from `x`, `[B]`, in J: 64 ulps of |E|, or the
-    measured noise of E (`energy_noise`) with `NOISE_ALLOWANCE`, whichever is larger."""
-    noise = NOISE_ALLOWANCE * energy_noise(objective, x, energy)
+    noise of E with `NOISE_ALLOWANCE` (`noise`, measured by `energy_noise` where None), whichever is
+    larger."""
+    if noise is None:
+        noise = _noise_allowance(objective, x, energy)
     return torch.maximum(_rounding(x, energy), noise)
+
+
+def _noise_allowance(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
+    # the measured noise of E near `x`, times `NOISE_ALLOWANCE`, `[B]`, in J
+    return NOISE_ALLOWANCE * energy_noise(objective, x, energy)
 
 
 def _sufficient_decrease(
@@ -159,8 +166,8 @@ def line_step(
 
     def noise_floor() -> Tensor:
         if measured_noise[0] is None:
-            measured_noise[0] = NOISE_ALLOWANCE * energy_noise(objective, x, energy)
-        return torch.maximum(_rounding(x, energy), measured_noise[0])
+            measured_noise[0] = _noise_allowance(objective, x, energy)
+        return _noise_floor(objective, x, energy, measured_noise[0])
 
     first = objective.trial(x, direction, gradient)
     initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient

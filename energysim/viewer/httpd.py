@@ -15,6 +15,7 @@ state, so there is no endpoint whose ``Origin`` would need checking.
 
 from __future__ import annotations
 
+import errno
 import http.client
 import http.server
 import io
@@ -23,7 +24,7 @@ import math
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from http import HTTPStatus
 from typing import Any
@@ -226,6 +227,29 @@ class Server(http.server.HTTPServer):
     def handle_error(self, request: Any, client_address: Any) -> None:
         # A browser closing a tab mid-download is handled in the handler; anything here is a bug.
         logger.exception("viewer: error while serving %s", client_address)
+
+
+def open_server(
+    port: int, host: str, allowed_hosts: Sequence[str], limits: ServerLimits | None, resource: Resource
+) -> Server:
+    """A `Server` bound to (`host`, `port`) serving `resource`, after checking the arguments as
+    `Viewer.serve` documents them: ValueError or TypeError naming a bad one, OSError naming a port in use."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ValueError(f"port must be an integer in [0, 65535], got {port!r}")
+    if not isinstance(host, str):
+        raise TypeError(f"host must be a string such as '127.0.0.1', got {host!r}")
+    if limits is None:
+        limits = ServerLimits()
+    elif not isinstance(limits, ServerLimits):
+        raise TypeError(f"limits must be a ServerLimits, got {type(limits).__name__}")
+    if isinstance(allowed_hosts, str):
+        raise TypeError(f"allowed_hosts must be a list of host names, got the string {allowed_hosts!r}")
+    try:
+        return Server((host, port), resource, limits, tuple(allowed_hosts))
+    except OSError as err:
+        if err.errno == errno.EADDRINUSE:
+            raise OSError(err.errno, f"port {port} on {host} is in use; pick another or port=0") from err
+        raise
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):

@@ -21,7 +21,6 @@ answers only requests addressed to its own host, within time, size and connectio
 
 from __future__ import annotations
 
-import errno
 import importlib.resources
 import json
 import logging
@@ -36,7 +35,7 @@ import numpy as np
 from energysim.mesh import SimplexMesh
 
 from . import trajectory
-from .httpd import Server, ServerLimits
+from .httpd import Server, ServerLimits, open_server
 from .notebook import EMBED_HEIGHT, EMBED_WIDTH, check_frame_size, iframe_html
 from .trajectory import Marker, Surface
 
@@ -261,22 +260,7 @@ class Viewer:
         """Check the arguments, bind and start the server thread; the caller holds _serve_lock."""
         if self._server is not None:
             raise RuntimeError(f"already serving at {self.url}; call stop() first")
-        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-            raise ValueError(f"port must be an integer in [0, 65535], got {port!r}")
-        if not isinstance(host, str):
-            raise TypeError(f"host must be a string such as '127.0.0.1', got {host!r}")
-        if limits is None:
-            limits = ServerLimits()
-        elif not isinstance(limits, ServerLimits):
-            raise TypeError(f"limits must be a ServerLimits, got {type(limits).__name__}")
-        if isinstance(allowed_hosts, str):
-            raise TypeError(f"allowed_hosts must be a list of host names, got the string {allowed_hosts!r}")
-        try:
-            server = Server((host, port), self._resource, limits, tuple(allowed_hosts))
-        except OSError as err:
-            if err.errno == errno.EADDRINUSE:
-                raise OSError(err.errno, f"port {port} on {host} is in use; pick another or port=0") from err
-            raise
+        server = open_server(port, host, allowed_hosts, limits, self._resource)
         self._server = server
         self._stopped = threading.Event()
         self._thread = threading.Thread(
