@@ -30,6 +30,8 @@ Run:  python scripts/bench_env.py                                    # worm and 
           --out docs/benchmarks/bench_env_leapfrog                   # the explicit env
       python scripts/bench_env.py --creatures worm --batch-sizes 64 --integrator both --compile \
           --warmup 10 --steps 20 --out docs/benchmarks/bench_env_both    # both envs side by side
+      python scripts/bench_env.py --creatures worm --batch-sizes 64 --compile --warmup 10 \
+          --steps 20 --solver-tol 1e-2 --out docs/benchmarks/bench_env_tol1e-2   # a looser tolerance
       python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
           --dtype float32 --out docs/benchmarks/bench_env_leapfrog_float32
 Writes: <out>/bench_env.csv, <out>/bench_env.md (the table) and <out>/bench_env.png.
@@ -52,9 +54,12 @@ from _bench import configure_threads, make_parser, pyplot, quartiles, save_figur
 
 from energysim.creatures import CREATURES
 from energysim.envs import CreatureEnv, CreatureVectorEnv
+from energysim.envs.config import CreatureEnvConfig
 
 # the rate the project aims at: the batched worm at B = 64 on 2 CPU cores
 TARGET_STEPS_PER_SECOND = 1000.0
+# the implicit env's documented tolerance, m/s
+SOLVER_TOL = CreatureEnvConfig.solver_tol
 
 
 @dataclass(frozen=True)
@@ -82,6 +87,7 @@ class Row:
     gait_distance_error: float = float("nan")
     solver_residual: float = float("nan")
     solver_budget: int | None = None
+    solver_tol: float = SOLVER_TOL
 
 
 def bench(
@@ -96,11 +102,13 @@ def bench(
     integrator: str = "implicit_euler",
     dtype: str = "float64",
     solver_budget: int | None = None,
+    solver_tol: float = SOLVER_TOL,
 ) -> Row:
     """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
     constant `activation_time_constant` in s, None: the env's default; compiled objective
     evaluations with `compile_objective`; the env's `integrator`); one table row, without the
-    gait's error (`gait_error`); `solver_budget`: the implicit env's fixed Newton budget per step."""
+    gait's error (`gait_error`); `solver_budget`: the implicit env's fixed Newton budget per step;
+    `solver_tol`: its velocity-residual tolerance, m/s."""
     env = CreatureVectorEnv(
         batch,
         creature,
@@ -112,6 +120,7 @@ def bench(
         integrator=integrator,
         dtype=getattr(torch, dtype),
         solver_budget=solver_budget if integrator != "leapfrog" else None,
+        solver_tol=solver_tol,
     )
     env.reset(seed=0)
     env.action_space.seed(0)
@@ -162,6 +171,7 @@ def bench(
         dtype=dtype,
         solver_residual=max(residuals) if integrator != "leapfrog" else float("nan"),
         solver_budget=env.config.solver_budget,
+        solver_tol=env.config.solver_tol,
     )
 
 
@@ -191,13 +201,20 @@ def gait_error(row: Row, device: str, seconds: float = GAIT_SECONDS) -> Row:
     in float64 whatever the row's precision."""
     options = {
         "solver_budget": row.solver_budget,
+        "solver_tol": row.solver_tol,
         "activation_time_constant": row.activation_time_constant,
         "integrator": row.integrator,
         "solver_compile": row.compiled,
         "dtype": getattr(torch, row.dtype),
     }
-    # the reference solves every step to the tolerance, whatever budget the row had
-    exact = {**options, "dtype": torch.float64, "solver_budget": None}
+    # the reference solves every step to the env's tolerance (or the row's, if finer), whatever
+    # budget the row had
+    exact = {
+        **options,
+        "dtype": torch.float64,
+        "solver_budget": None,
+        "solver_tol": min(row.solver_tol, SOLVER_TOL),
+    }
     if row.integrator == "leapfrog":
         measured = gait_distance(row.creature, {**options, "substeps": row.substeps}, device, seconds)
         reference = gait_distance(row.creature, {**exact, "substeps": 4 * row.substeps}, device, seconds)
@@ -222,7 +239,9 @@ def activation_text(time_constant: float | None) -> str:
 
 PHYSICS = {
     "leapfrog": "explicit leapfrog substeps (the ground an inelastic contact with Coulomb friction)",
-    "implicit_euler": "implicit_euler, Newton–CG (tol 1e-4 m/s, indefinite Hessians shifted, the IPC ground)",
+    "implicit_euler": (
+        "implicit_euler, Newton–CG (tol {tol:g} m/s, indefinite Hessians shifted, the IPC ground)"
+    ),
 }
 
 
@@ -231,7 +250,8 @@ def markdown(rows: list[Row], threads: int) -> str:
     dynamics = activation_text(rows[0].activation_time_constant)
     evaluations = "compiled evaluations" if rows[0].compiled else "eager evaluations"
     budget = next((r.solver_budget for r in rows if r.solver_budget is not None), None)
-    texts = dict(PHYSICS)
+    tol = next((r.solver_tol for r in rows if r.integrator != "leapfrog"), SOLVER_TOL)
+    texts = {name: text.format(tol=tol) for name, text in PHYSICS.items()}
     if budget is not None:
         texts["implicit_euler"] += (
             f", a fixed budget of at most {budget} Newton iterations per step (the residual it leaves "
@@ -327,6 +347,12 @@ def main(argv: list[str] | None = None) -> list[Row]:
         default=None,
         help="the implicit env's fixed Newton budget per physics step (default: solve to the tolerance)",
     )
+    parser.add_argument(
+        "--solver-tol",
+        type=float,
+        default=SOLVER_TOL,
+        help=f"the implicit env's velocity-residual tolerance, m/s (default {SOLVER_TOL:g})",
+    )
     parser.add_argument("--no-gait", action="store_true", help="skip the gait's error (the slow part)")
     parser.add_argument(
         "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
@@ -339,6 +365,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
     if args.solver_budget is not None and args.solver_budget < 1:
         parser.error(f"--solver-budget must be an integer >= 1, got {args.solver_budget}")
+    if not (np.isfinite(args.solver_tol) and args.solver_tol > 0):
+        parser.error(f"--solver-tol must be a finite number > 0 m/s, got {args.solver_tol}")
     configure_threads(args.threads)
     integrators = ["implicit_euler", "leapfrog"] if args.integrator == "both" else [args.integrator]
     rows = [
@@ -354,6 +382,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
             integrator,
             args.dtype,
             args.solver_budget,
+            args.solver_tol,
         )
         for creature in args.creatures
         for batch in args.batch_sizes

@@ -582,6 +582,39 @@ def test_bench_env_sets_both_envs_side_by_side_with_the_residual(tmp_path: Path)
     assert f"the explicit env is {ratio:.1f}× the implicit env's rate" in table
 
 
+def test_bench_env_iterations_varies_one_thing_at_a_time(tmp_path: Path) -> None:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import bench_env_iterations
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    rows = bench_env_iterations.main(
+        ["--creature", "crawler2d", "--batch-size", "2", "--steps", "1", "--warmup", "0", "--eager"]
+        + ["--no-gait", "--no-plot", "--out", str(tmp_path)]
+    )
+    by_name = {row.variant: row for row in rows}
+    assert list(by_name) == [variant.name for variant in bench_env_iterations.VARIANTS]
+    # each solve met its own tolerance: the default's, and the loosened one's
+    assert by_name["default"].solver_residual <= 1e-4 < by_name["tol 1e-2"].solver_residual <= 1e-2
+    # without contact the same actions need clearly fewer Newton iterations (5 against 8.5 here)
+    assert by_name["no contact"].newton_iterations < by_name["default"].newton_iterations - 1
+    text = (tmp_path / "bench_env_iterations.md").read_text()
+    assert "| no contact |" in text and "log10(d_n+1 / d_n)" in text
+
+
+def test_bench_env_solves_to_the_tolerance_it_is_given(tmp_path: Path) -> None:
+    bench_env = bench_env_script()
+    (row,) = bench_env.main(
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "2", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--solver-tol", "1e-2", "--no-gait"]
+    )
+    # the residual a solve left stays below the tolerance asked for, not the env's default
+    assert row.solver_tol == 1e-2 and 0 < row.solver_residual <= 1e-2
+    assert "tol 0.01 m/s" in (tmp_path / "bench_env.md").read_text()
+    with pytest.raises(SystemExit):
+        bench_env.main(["--solver-tol", "0", "--no-plot", "--out", str(tmp_path)])
+
+
 @pytest.mark.parametrize("creature", ["worm", "crawler2d"])
 def test_leapfrog_envs_pass_the_checker_and_batch_exactly(creature: str) -> None:
     # the explicit env: substeps from the Courant limit at rest, τ = 0.05 s by default
