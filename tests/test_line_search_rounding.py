@@ -180,3 +180,36 @@ def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pyte
         assert not transition.numerical_failure.any()
         assert float(transition.solver_residual.max()) < 1e-4
         state, activation = transition.state, transition.activation
+
+
+def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> None:
+    # a bowl E = 2‖x‖² from x = 1: entries 1–3 take the exact Newton step (d = −1, t = 1); entry 0's
+    # direction is 100× too long, and its search must come down to t = 0.01. Given `restrict`,
+    # entry 0 backtracks alone, on an objective of its row; the result is the same, the minimum at 0
+    from energysim.objective.objective import Objective
+    from energysim.solvers.line_search import line_step
+
+    def bowl() -> Objective:
+        # the bowl has no data per entry: the objective of some rows is a bowl too
+        return Objective([_Bowl()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
+
+    x = torch.ones(4, 1, 1, dtype=torch.float64)
+    direction = -torch.ones_like(x)
+    direction[0] *= 100.0
+    restricted_rows = []
+
+    def restrict(rows: torch.Tensor) -> Objective:
+        restricted_rows.append(rows.tolist())
+        return bowl()
+
+    results = []
+    for given in (None, restrict):
+        objective = bowl()
+        energy, gradient = objective.energy_and_gradient(x)
+        results.append(line_step(objective, x, energy, gradient, direction, restrict=given))
+    whole, alone = results
+    assert restricted_rows == [[0]]
+    assert alone.step.tolist() == pytest.approx([0.01, 1.0, 1.0, 1.0], rel=1e-12)
+    for field in ("step", "x", "energy", "gradient", "residual"):
+        assert torch.allclose(getattr(alone, field), getattr(whole, field), rtol=0, atol=1e-12), field
+    assert float(alone.x.abs().max()) < 1e-12 and float(alone.energy.abs().max()) < 1e-20

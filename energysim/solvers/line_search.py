@@ -4,6 +4,7 @@ measured where it matters."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -143,6 +144,7 @@ def line_step(
     *,
     sufficient_decrease: float = 1e-4,
     noise: Tensor | None = None,
+    restrict: Callable[[Tensor], Objective] | None = None,
 ) -> LineStep:
     """One line-search step from `x` along `direction`, with the energy and gradient where it ends.
 
@@ -156,6 +158,12 @@ def line_step(
     a step that overshoots by that estimate is replaced by the minimiser of the quadratic. A step
     neither can judge is taken whole and flagged `unjudged`. Where some entry still refuses its trial,
     the search backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
+
+    `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
+    it is given and at most half of the entries refuse their trial, only those backtrack, on their
+    own objective; the others keep their trial's energy and gradient. Without it every backtracking
+    energy and the final gradient are evaluated on the whole batch: on 64 randomly driven worms,
+    one or two refusing entries made that a sixth of a step.
 
     `noise`: the allowance for the noise of E (`LineStep.noise`) that an earlier search of the same
     solve measured, used instead of measuring again. The noise is that of the energy's terms at
@@ -215,19 +223,41 @@ def line_step(
             rounding,
             measured_noise[0],
         )
-    step, _, unjudged = backtracking_line_search(
-        objective,
-        x,
-        energy,
-        gradient,
-        direction,
-        initial,
-        sufficient_decrease=sufficient_decrease,
-        rounding=rounding,
-        initial_energy=trial_energy,
-    )
-    x_new = x + step[:, None, None] * direction
-    new_energy, new_gradient = objective.energy_and_gradient(x_new)
+    refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
+    if restrict is not None and 2 * refusing.numel() <= x.shape[0]:
+        part = restrict(refusing)
+        steps, _, _ = backtracking_line_search(
+            part,
+            x[refusing],
+            energy[refusing],
+            gradient[refusing],
+            direction[refusing],
+            initial[refusing],
+            sufficient_decrease=sufficient_decrease,
+            rounding=rounding[refusing],
+            initial_energy=trial_energy[refusing],
+        )
+        moved = x[refusing] + steps[:, None, None] * direction[refusing]
+        moved_energy, moved_gradient = part.energy_and_gradient(moved)
+        step = initial.index_copy(0, refusing, steps)
+        x_new = trial_x.index_copy(0, refusing, moved)
+        new_energy = trial_energy.index_copy(0, refusing, moved_energy)
+        new_gradient = trial_gradient.index_copy(0, refusing, moved_gradient)
+        unjudged = -slope * initial <= rounding
+    else:
+        step, _, unjudged = backtracking_line_search(
+            objective,
+            x,
+            energy,
+            gradient,
+            direction,
+            initial,
+            sufficient_decrease=sufficient_decrease,
+            rounding=rounding,
+            initial_energy=trial_energy,
+        )
+        x_new = x + step[:, None, None] * direction
+        new_energy, new_gradient = objective.energy_and_gradient(x_new)
     return LineStep(
         step,
         x_new,

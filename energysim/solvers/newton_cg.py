@@ -171,6 +171,16 @@ class NewtonCG(Solver):
         noise = None  # the energy's noise, once a line search has measured it (`line_step`)
         taken = torch.zeros_like(residual, dtype=torch.int64)  # iterations per entry
         solved_taken = taken
+
+        searched: list[Objective] = []  # the objectives of rows that backtracked alone
+
+        def rows_alone(rows: Tensor) -> Objective:
+            # the objective of some rows of the current one (`entries` maps them to the batch's)
+            part = self.prepare(root.subset(entries[rows]))
+            searched.append(part)
+            return part
+
+        restrict = rows_alone if root.subset is not None else None
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
@@ -211,7 +221,7 @@ class NewtonCG(Solver):
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
             direction = direction * active[:, None, None]
-            search = line_step(objective, x, energy, gradient, direction, noise=noise)
+            search = line_step(objective, x, energy, gradient, direction, noise=noise, restrict=restrict)
             noise = search.noise
             if self.reuse_factorization is not None:
                 slow = search.residual > self.reuse_factorization * residual
@@ -237,8 +247,9 @@ class NewtonCG(Solver):
             residual = solved_residual.index_copy(0, entries, residual)
             stalled = solved_stalled.index_copy(0, entries, stalled)
             taken = solved_taken.index_copy(0, entries, taken)
-            root.grad_evals = sum(part.grad_evals for part in used)
-            root.energy_evals = sum(part.energy_evals for part in used)
+        if len(used) + len(searched) > 1:
+            root.grad_evals = sum(part.grad_evals for part in used + searched)
+            root.energy_evals = sum(part.energy_evals for part in used + searched)
         return self.finish(root, x, residual, iterations, hvps, stalled, taken)
 
     def direct_limit(self, *, compiled_band: bool = False) -> int:
