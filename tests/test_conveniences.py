@@ -6,6 +6,7 @@ from __future__ import annotations
 import _thread
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -192,10 +193,21 @@ def test_blocking_serve_serves_until_stop_from_another_thread_then_frees_the_por
 def test_blocking_serve_ends_on_ctrl_c_and_frees_the_port() -> None:
     viewer = Viewer(_falling_box())
     helper = _when_serving(viewer, _thread.interrupt_main)  # what Ctrl+C does to the main thread
+    # a simulated Ctrl+C does nothing where SIGINT has another handler than Python's (a library
+    # may have set one): install Python's for the test, and stop the viewer after a while if the
+    # interrupt never came, so that the test fails instead of hanging
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    watchdog = threading.Timer(30.0, viewer.stop)
+    watchdog.start()
+    started = time.monotonic()
     try:
         viewer.serve(0, block=True)
     except KeyboardInterrupt:  # pragma: no cover - the failure this test is for
         pytest.fail("serve(block=True) let Ctrl+C escape instead of stopping")
+    finally:
+        watchdog.cancel()
+        signal.signal(signal.SIGINT, previous)
+    assert time.monotonic() - started < 30.0, "Ctrl+C did not stop the blocking serve"
     helper.join(5)
     seen = helper.seen  # type: ignore[attr-defined]
     assert seen["status"] == 200 and not viewer.serving
