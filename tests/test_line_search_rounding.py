@@ -151,8 +151,9 @@ def test_backtracking_interpolates_a_far_too_long_step_down_to_the_minimum() -> 
 
 def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pytest.MonkeyPatch) -> None:
     # the noise is that of the energy's terms at the body's scale, which one solve's iterates share:
-    # a measurement is handed from one line search to the next instead of being taken again. Eight
-    # randomly driven worms: measured 3 times in their sixth solve when each search measured anew
+    # a measurement is handed from one line search to the next instead of being taken again, and
+    # taken for the entries whose trial it may decide. Eight randomly driven worms: measured 3 times
+    # in their sixth solve when each search measured anew, each time for the whole batch
     import numpy as np
 
     import energysim.solvers.line_search as line_search
@@ -162,9 +163,9 @@ def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pyte
     measured = []
     original = line_search.energy_noise
 
-    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        measured.append(1)
-        return original(*args, **kwargs)
+    def counted(objective, x, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        measured.append(x.shape[0])  # the entries measured
+        return original(objective, x, *args, **kwargs)
 
     monkeypatch.setattr(line_search, "energy_noise", counted)
     simulation = CreatureSimulation(CreatureEnvConfig(creature="worm", solver_tol=1e-4))
@@ -172,14 +173,19 @@ def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pyte
     state = simulation.reset([np.random.default_rng(i) for i in range(batch)])
     generator = torch.Generator().manual_seed(0)
     activation = None
+    per_step = []
     for _ in range(6):
         command = torch.rand(batch, simulation.num_actuators, generator=generator, dtype=torch.float64)
         measured.clear()
         transition = simulation.step(state, 2 * command - 1, activation)
-        assert len(measured) <= 1, len(measured)
+        # no entry is measured twice in a solve: at most the batch in all
+        assert sum(measured) <= batch, measured
         assert not transition.numerical_failure.any()
         assert float(transition.solver_residual.max()) < 1e-4
         state, activation = transition.state, transition.activation
+        per_step.append(sum(measured))
+    # and mostly far fewer: the entries whose trial the noise could decide
+    assert sum(per_step) < 6 * batch / 2, per_step
 
 
 def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> None:

@@ -65,11 +65,11 @@ def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int =
 
 def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor | None = None) -> Tensor:
     """The allowance for rounding in an Armijo test from `x`, `[B]`, in J: 64 ulps of |E|, or the
-    noise of E with `NOISE_ALLOWANCE` (`noise`, measured by `energy_noise` where None), whichever is
-    larger."""
+    noise of E with `NOISE_ALLOWANCE` (`noise`, measured by `energy_noise` where None; NaN where an
+    entry's is not known), whichever is larger."""
     if noise is None:
         noise = _noise_allowance(objective, x, energy)
-    return torch.maximum(_rounding(x, energy), noise)
+    return torch.fmax(_rounding(x, energy), noise)
 
 
 def _noise_allowance(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
@@ -98,8 +98,9 @@ class LineStep:
         allowance: the rounding of E the search allowed for `[B]`, in J: 64 ulps of |E|, or the
             measured noise (`_noise_floor`) where it was measured.
         noise: `NOISE_ALLOWANCE` × the noise of E (`energy_noise`) `[B]`, in J, where this search
-            measured it or was given it; None where neither. A solver passes it to its next
-            searches (`line_step`'s `noise`), which then measure nothing.
+            measured it or was given it; NaN for entries it was not measured for, None where it
+            was measured for none. A solver passes it to its next searches (`line_step`'s
+            `noise`), which then measure only the entries still without one.
     """
 
     step: Tensor
@@ -161,9 +162,10 @@ def line_step(
 
     `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
     it is given and at most half of the entries refuse their trial, only those backtrack, on their
-    own objective; the others keep their trial's energy and gradient. Without it every backtracking
-    energy and the final gradient are evaluated on the whole batch: on 64 randomly driven worms,
-    one or two refusing entries made that a sixth of a step.
+    own objective; the others keep their trial's energy and gradient. The noise is then measured
+    for the entries whose trial it may decide alone, too. Without it every backtracking energy, the
+    final gradient and the noise are evaluated on the whole batch: on 64 randomly driven worms, one
+    or two refusing entries made that a fifth of a step.
 
     `noise`: the allowance for the noise of E (`LineStep.noise`) that an earlier search of the same
     solve measured, used instead of measuring again. The noise is that of the energy's terms at
@@ -172,10 +174,24 @@ def line_step(
     """
     measured_noise = [noise]
 
-    def noise_floor() -> Tensor:
-        if measured_noise[0] is None:
-            measured_noise[0] = _noise_allowance(objective, x, energy)
-        return _noise_floor(objective, x, energy, measured_noise[0])
+    def rows_alone(rows: Tensor) -> Objective | None:
+        # the objective of `rows` alone, where that is possible and saves work
+        return restrict(rows) if restrict is not None and 2 * rows.numel() <= x.shape[0] else None
+
+    def noise_floor(needed: Tensor) -> Tensor:
+        # the allowance, with the noise of E measured for the `needed` entries that lack it
+        known = measured_noise[0]
+        if known is None:
+            known = torch.full_like(energy, torch.nan)
+        rows = torch.nonzero(needed & torch.isnan(known)).reshape(-1)
+        if rows.numel():
+            part = rows_alone(rows)
+            if part is None:
+                known = torch.where(torch.isnan(known), _noise_allowance(objective, x, energy), known)
+            else:
+                known = known.index_copy(0, rows, _noise_allowance(part, x[rows], energy[rows]))
+            measured_noise[0] = known
+        return _noise_floor(objective, x, energy, known)
 
     first = objective.trial(x, direction, gradient)
     initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient
@@ -189,9 +205,10 @@ def line_step(
     unjudged = -slope * initial <= rounding
     decrease = armijo(trial_energy, initial)
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
-    if not bool((decrease | ~_noise_may_matter(energy, slope, initial, slope_decrease)).all()):
+    doubtful = ~decrease & _noise_may_matter(energy, slope, initial, slope_decrease)
+    if bool(doubtful.any()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
-        rounding, measured = noise_floor(), True
+        rounding, measured = noise_floor(doubtful), True
         unjudged = -slope * initial <= rounding
         decrease = armijo(trial_energy, initial)
     overshot = unjudged & ~slope_decrease & (slope < 0) & (trial_slope > slope)
@@ -207,7 +224,7 @@ def line_step(
         slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
         decrease = armijo(trial_energy, initial)
         if not measured and not bool(decrease.all()):
-            rounding = noise_floor()
+            rounding = noise_floor(~decrease)
             unjudged = -slope * initial <= rounding
             decrease = armijo(trial_energy, initial)
     # the energy cannot tell these from no change: their derivatives can
@@ -224,8 +241,8 @@ def line_step(
             measured_noise[0],
         )
     refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
-    if restrict is not None and 2 * refusing.numel() <= x.shape[0]:
-        part = restrict(refusing)
+    part = rows_alone(refusing)
+    if part is not None:
         steps, _, _ = backtracking_line_search(
             part,
             x[refusing],
