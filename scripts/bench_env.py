@@ -12,7 +12,8 @@ compilation happens in the untimed warm-up steps, so give it a few (`--warmup 10
 `--threads` intra-op threads (default 1, best for meshes this small on a shared
 machine). `--integrator leapfrog` steps the env's explicit physics (`CreatureEnvConfig`: substeps
 from the Courant limit, the ground as an inelastic contact with Coulomb friction), `--integrator
-both` the implicit and the explicit env of the same body model side by side, with their ratio.
+both` the implicit and the explicit env of the same body model side by side, their step calls
+interleaved (a slow moment of a shared machine then falls on both alike), with their ratio.
 Beside each implicit run: the largest velocity residual a solve left (m/s).
 
 Every speed comes with an error: the suggested open-loop gait (the creature's sine, through the
@@ -45,7 +46,8 @@ import io
 import pstats
 import statistics
 import time
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +92,18 @@ class Row:
     solver_tol: float = SOLVER_TOL
 
 
+@dataclass
+class Timed:
+    """One env under timing and what its step calls reported."""
+
+    env: CreatureVectorEnv
+    integrator: str
+    walls: list[float] = field(default_factory=list)
+    iterations: list[float] = field(default_factory=list)
+    residuals: list[float] = field(default_factory=lambda: [0.0])
+    failures: int = 0
+
+
 def bench(
     creature: str,
     batch: int,
@@ -99,59 +113,76 @@ def bench(
     profile: bool,
     activation_time_constant: float | None = None,
     compile_objective: bool = False,
-    integrator: str = "implicit_euler",
+    integrators: Sequence[str] = ("implicit_euler",),
     dtype: str = "float64",
     solver_budget: int | None = None,
     solver_tol: float = SOLVER_TOL,
-) -> Row:
-    """Time `steps` calls of a batched env of `batch` creatures (activation dynamics with time
-    constant `activation_time_constant` in s, None: the env's default; compiled objective
-    evaluations with `compile_objective`; the env's `integrator`); one table row, without the
-    gait's error (`gait_error`); `solver_budget`: the implicit env's fixed Newton budget per step;
-    `solver_tol`: its velocity-residual tolerance, m/s."""
-    env = CreatureVectorEnv(
-        batch,
-        creature,
-        frame_skip=1,
-        dt=1 / 60,
-        device=device,
-        activation_time_constant=activation_time_constant,
-        solver_compile=compile_objective,
-        integrator=integrator,
-        dtype=getattr(torch, dtype),
-        solver_budget=solver_budget if integrator != "leapfrog" else None,
-        solver_tol=solver_tol,
-    )
-    env.reset(seed=0)
-    env.action_space.seed(0)
-    for _ in range(warmup):
-        env.step(env.action_space.sample())
-    walls, iterations, residuals, failures = [], [], [0.0], 0
+) -> list[Row]:
+    """Time `steps` calls of a batched env of `batch` creatures per integrator of `integrators`,
+    their calls interleaved, so that a slow moment of a shared machine falls on every env alike
+    (activation dynamics with time constant `activation_time_constant` in s, None: the env's
+    default; compiled objective evaluations with `compile_objective`); one table row per env,
+    without the gait's error (`gait_error`). `solver_budget`: the implicit env's fixed Newton budget
+    per step; `solver_tol`: its velocity-residual tolerance, m/s."""
+    timed = []
+    for integrator in integrators:
+        env = CreatureVectorEnv(
+            batch,
+            creature,
+            frame_skip=1,
+            dt=1 / 60,
+            device=device,
+            activation_time_constant=activation_time_constant,
+            solver_compile=compile_objective,
+            integrator=integrator,
+            dtype=getattr(torch, dtype),
+            solver_budget=solver_budget if integrator != "leapfrog" else None,
+            solver_tol=solver_tol,
+        )
+        env.reset(seed=0)
+        env.action_space.seed(0)
+        for _ in range(warmup):
+            env.step(env.action_space.sample())
+        timed.append(Timed(env, integrator))
     profiler = cProfile.Profile() if profile else None
     for _ in range(steps):
-        actions = env.action_space.sample()
-        if profiler is not None:
-            profiler.enable()
-        start = time.perf_counter()
-        _, _, terminated, _, info = env.step(actions)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        walls.append(time.perf_counter() - start)
-        if profiler is not None:
-            profiler.disable()
-        stepped = info.get("_solver_iterations", np.zeros(batch, dtype=bool))
-        if stepped.any():
-            iterations.append(float(info["solver_iterations"][stepped].mean()))
-            residuals.append(float(info["solver_residual"][stepped].max()))
-        failures += int(terminated.sum())
+        for run in timed:
+            _time_step(run, device, profiler)
     if profiler is not None:
         text = io.StringIO()
         pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
-        print(f"--- profile: {creature}, B = {batch}, {steps} calls ---\n{text.getvalue()}")
-    timing = quartiles(walls)
+        print(f"--- profile: {creature}, B = {batch}, {steps} calls per env ---\n{text.getvalue()}")
+    return [_row(run, creature, batch, device, steps, compile_objective, dtype) for run in timed]
+
+
+def _time_step(run: Timed, device: str, profiler: cProfile.Profile | None) -> None:
+    # one timed step call of random actions, and what it reported
+    actions = run.env.action_space.sample()
+    if profiler is not None:
+        profiler.enable()
+    start = time.perf_counter()
+    _, _, terminated, _, info = run.env.step(actions)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    run.walls.append(time.perf_counter() - start)
+    if profiler is not None:
+        profiler.disable()
+    stepped = info.get("_solver_iterations", np.zeros(run.env.num_envs, dtype=bool))
+    if stepped.any():
+        run.iterations.append(float(info["solver_iterations"][stepped].mean()))
+        run.residuals.append(float(info["solver_residual"][stepped].max()))
+    run.failures += int(terminated.sum())
+
+
+def _row(run: Timed, creature: str, batch: int, device: str, steps: int, compiled: bool, dtype: str) -> Row:
+    # the table row of one timed env
+    timing = quartiles(run.walls)
     low, median, high = timing.low, timing.median, timing.high
-    rate = batch / median
-    print(f"{creature} B={batch}: {steps} calls, median {1e3 * median:.1f} ms = {rate:.1f} env steps/s")
+    print(
+        f"{creature} B={batch} {run.integrator}: {steps} calls, median {1e3 * median:.1f} ms = "
+        f"{batch / median:.1f} env steps/s"
+    )
+    env = run.env
     return Row(
         creature=creature,
         batch=batch,
@@ -162,14 +193,14 @@ def bench(
         env_steps_per_second=batch / median,
         env_steps_per_second_low=batch / high,
         env_steps_per_second_high=batch / low,
-        newton_iterations=statistics.fmean(iterations) if iterations else float("nan"),
-        failures=failures,
+        newton_iterations=statistics.fmean(run.iterations) if run.iterations else float("nan"),
+        failures=run.failures,
         activation_time_constant=env.config.time_constant,
-        compiled=compile_objective,
-        integrator=integrator,
+        compiled=compiled,
+        integrator=run.integrator,
         substeps=env.simulation.scene.substeps,
         dtype=dtype,
-        solver_residual=max(residuals) if integrator != "leapfrog" else float("nan"),
+        solver_residual=max(run.residuals) if run.integrator != "leapfrog" else float("nan"),
         solver_budget=env.config.solver_budget,
         solver_tol=env.config.solver_tol,
     )
@@ -263,8 +294,9 @@ def markdown(rows: list[Row], threads: int) -> str:
         f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
         f"{dynamics}, {threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
-        "range. Work: leapfrog substeps per physics step, or Newton iterations per physics step (the "
-        "mean over the entries of each one's own count; the batched solve runs as many as its "
+        "range; the envs of one creature and B had their calls interleaved. Work: leapfrog substeps "
+        "per physics step, or Newton iterations per physics step (the mean over the entries of each "
+        "one's own count; the batched solve runs as many as its "
         "slowest entry) with the largest velocity residual a solve left. "
         f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
         "model four times finer in time, in float64 (the reference's distance beside it).",
@@ -370,7 +402,10 @@ def main(argv: list[str] | None = None) -> list[Row]:
     configure_threads(args.threads)
     integrators = ["implicit_euler", "leapfrog"] if args.integrator == "both" else [args.integrator]
     rows = [
-        bench(
+        row
+        for creature in args.creatures
+        for batch in args.batch_sizes
+        for row in bench(
             creature,
             batch,
             args.steps,
@@ -379,14 +414,11 @@ def main(argv: list[str] | None = None) -> list[Row]:
             args.profile,
             tau,
             args.compile,
-            integrator,
+            integrators,
             args.dtype,
             args.solver_budget,
             args.solver_tol,
         )
-        for creature in args.creatures
-        for batch in args.batch_sizes
-        for integrator in integrators
     ]
     if not args.no_gait:
         # one gait per creature and integrator: the physics does not depend on B
