@@ -172,7 +172,7 @@ class NewtonCG(Solver):
         taken = torch.zeros_like(residual, dtype=torch.int64)  # iterations per entry
         solved_taken = taken
 
-        searched: list[Objective] = []  # the objectives of rows that backtracked alone
+        searched: list[Objective] = []  # the objectives of rows a line search evaluated alone
 
         def rows_alone(rows: Tensor) -> Objective:
             # the objective of some rows of the current one (`entries` maps them to the batch's)
