@@ -37,20 +37,21 @@ from _bench import configure_threads, make_parser, pyplot, save_figure, table, w
 
 from energysim.creatures import CREATURES
 from energysim.envs import CreatureEnv, CreatureVectorEnv
+from energysim.envs.core import CreatureSimulation
 
-# the barrier's stiffness, scaled in place before the first step (no graph has captured it yet)
-Adjust = Callable[[object], None]
+# a change to a built simulation (applied before its first step, so no compiled graph holds the old value)
+Adjust = Callable[[CreatureSimulation], None]
 
 
 def _scale_barrier(factor: float) -> Adjust:
-    def adjust(simulation: object) -> None:
+    def adjust(simulation: CreatureSimulation) -> None:
         with torch.no_grad():
             simulation.ground.barrier_stiffness.mul_(factor)
 
     return adjust
 
 
-def _lower_ground(simulation: object) -> None:
+def _lower_ground(simulation: CreatureSimulation) -> None:
     with torch.no_grad():
         simulation.ground.offset.sub_(5.0)
 
