@@ -47,7 +47,7 @@ import io
 import pstats
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,6 +58,7 @@ from _bench import configure_threads, make_parser, pyplot, quartiles, save_figur
 from energysim.creatures import CREATURES
 from energysim.envs import CreatureEnv, CreatureVectorEnv
 from energysim.envs.config import CreatureEnvConfig
+from energysim.envs.core import CreatureSimulation
 
 # the rate the project aims at: the batched worm at B = 64 on 2 CPU cores
 TARGET_STEPS_PER_SECOND = 1000.0
@@ -220,11 +221,20 @@ GAIT_SECONDS = 2.0
 
 
 def gait_distance(
-    creature: str, options: dict, device: str, seconds: float, dt: float = 1 / 60, frame_skip: int = 1
+    creature: str,
+    options: dict,
+    device: str,
+    seconds: float,
+    dt: float = 1 / 60,
+    frame_skip: int = 1,
+    prepare: Callable[[CreatureSimulation], None] | None = None,
 ) -> float:
     """Forward distance (m) of the centre of mass after `seconds` of the creature's suggested gait,
-    sampled at every env step of frame_skip·dt, in one `CreatureEnv` with `options`."""
+    sampled at every env step of frame_skip·dt, in one `CreatureEnv` with `options`; `prepare`
+    changes its simulation before the reset."""
     env = CreatureEnv(creature, dt=dt, frame_skip=frame_skip, device=device, reset_noise_scale=0.0, **options)
+    if prepare is not None:
+        prepare(env.simulation)
     _, info = env.reset(seed=0)
     start = info["x_position"]
     creature_data = env.simulation.creature

@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from _bench import configure_threads, make_parser, pyplot, save_figure, table, write_outputs
+from bench_env import GAIT_SECONDS, gait_distance
 
 from energysim.creatures import CREATURES
-from energysim.envs import CreatureEnv, CreatureVectorEnv
+from energysim.envs import CreatureVectorEnv
 from energysim.envs.core import CreatureSimulation
 
 # a change to a built simulation (applied before its first step, so no compiled graph holds the old value)
@@ -98,21 +99,6 @@ def contact_distances(env: CreatureVectorEnv) -> np.ndarray:
     return simulation.ground.signed_distance(simulation.ground.vertex_positions(positions)).numpy()
 
 
-def gait_distance(creature: str, variant: Variant, compiled: bool, seconds: float = 2.0) -> float:
-    """Forward distance (m) of the suggested gait in `seconds`, one creature of `variant`."""
-    env = CreatureEnv(creature, reset_noise_scale=0.0, solver_compile=compiled, **variant.options)
-    if variant.built is not None:
-        variant.built(env.simulation)
-    _, info = env.reset(seed=0)
-    start = info["x_position"]
-    for k in range(round(seconds * 60)):
-        action = env.simulation.creature.gait_action(k / 60).numpy().astype(np.float32)
-        _, _, terminated, _, info = env.step(action)
-        if terminated:
-            return float("nan")
-    return info["x_position"] - start
-
-
 def run(
     creature: str, batch: int, steps: int, warmup: int, gait: bool, compiled: bool = True
 ) -> tuple[list[Row], np.ndarray]:
@@ -150,7 +136,10 @@ def run(
                 ratios.append(np.log10(after[near] / before[near]))
     rows = []
     for index, variant in enumerate(VARIANTS):
-        distance = gait_distance(creature, variant, compiled) if gait and variant.walks else float("nan")
+        distance = float("nan")
+        if gait and variant.walks:
+            options = {"solver_compile": compiled, **variant.options}
+            distance = gait_distance(creature, options, "cpu", GAIT_SECONDS, prepare=variant.built)
         rows.append(
             Row(
                 variant=variant.name,

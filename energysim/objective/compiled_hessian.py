@@ -8,6 +8,7 @@ lands differs.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
@@ -52,8 +53,10 @@ def _hessian_in_storage(
     return call("hessian_entries", tuple(terms), action, x, groups, diagonal, length)
 
 
-def _fixed_dofs(free: Tensor, dim: int) -> Tensor:
-    # the fixed DOFs `[n·d]` (DOF = vertex·d + axis) of the per-vertex `free` `[n]`
+def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
+    # the fixed DOFs `[n·d]` (DOF = vertex·d + axis) of the per-vertex `free` `[n]`; None if none is
+    if bool(free.all()):
+        return None
     return (~free)[:, None].expand(free.shape[0], dim).reshape(-1)
 
 
@@ -74,9 +77,9 @@ def dense_hessian(
     if flat is None:
         return None
     dense = flat.reshape(batch, size, size)
-    if not bool(free.all()):
+    fixed = _fixed_dofs(free, dim)
+    if fixed is not None:
         # fixed DOFs get the rows and columns of the identity, as in `energysim.linalg.assembly.assemble`
-        fixed = _fixed_dofs(free, dim)
         kept = (~fixed).to(x.dtype)
         dense = dense * kept[:, None] * kept[None, :] + torch.diag(fixed.to(x.dtype))
     return dense
@@ -88,18 +91,14 @@ def band_hessian(
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
     eliminated, by the compiled function, or None."""
     batch, n, dim = x.shape
-
-    def positions(element_vertices: Tensor) -> Tensor:
-        return band_positions(layout, element_vertices, dim)
-
+    positions = functools.partial(band_positions, layout, dim=dim)
     diagonal = band_diagonal_positions(layout)
     flat = _hessian_in_storage(terms, action, x, positions, diagonal, band_length(layout))
     if flat is None:
         return None
     bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
-    if not bool(free.all()):
-        bands = eliminate_fixed_in_bands(bands, layout, _fixed_dofs(free, dim))
-    return bands
+    fixed = _fixed_dofs(free, dim)
+    return bands if fixed is None else eliminate_fixed_in_bands(bands, layout, fixed)
 
 
 def level_hessian(
@@ -109,17 +108,15 @@ def level_hessian(
     `[B, L, S, S]` and the sub-diagonal ones `[B, L−1, S, S]`, padding and fixed DOFs given identity
     rows, by the compiled function, or None."""
     batch, _, dim = x.shape
-
-    def positions(element_vertices: Tensor) -> Tensor:
-        return level_positions(layout, element_vertices, dim)
-
+    positions = functools.partial(level_positions, layout, dim=dim)
     diagonal = level_diagonal_positions(layout)
     flat = _hessian_in_storage(terms, action, x, positions, diagonal, level_length(layout))
     if flat is None:
         return None
     flat = flat + padding_identity(layout, x.dtype)
-    if not bool(free.all()):
-        flat = eliminate_fixed_in_levels(flat, layout, _fixed_dofs(free, dim))
+    fixed = _fixed_dofs(free, dim)
+    if fixed is not None:
+        flat = eliminate_fixed_in_levels(flat, layout, fixed)
     levels, size = layout.num_levels, layout.level_size
     split = levels * size * size
     return (

@@ -21,7 +21,6 @@ answers only requests addressed to its own host, within time, size and connectio
 
 from __future__ import annotations
 
-import importlib.resources
 import json
 import logging
 import secrets
@@ -37,6 +36,7 @@ from energysim.mesh import SimplexMesh
 from . import trajectory
 from .httpd import Server, ServerLimits, open_server
 from .notebook import EMBED_HEIGHT, EMBED_WIDTH, check_frame_size, iframe_html
+from .page import page_assets
 from .trajectory import Marker, Surface
 
 if TYPE_CHECKING:
@@ -46,21 +46,6 @@ logger = logging.getLogger(__name__)
 
 # How often a blocked `serve`/`wait` wakes to notice Ctrl+C where a signal cannot interrupt a wait, s.
 _WAKE_INTERVAL = 0.2
-
-# URL path -> (file in static/, content type). The page and its assets, nothing else.
-_ASSETS = {
-    "/": ("index.html", "text/html; charset=utf-8"),
-    "/index.html": ("index.html", "text/html; charset=utf-8"),
-    "/viewer.js": ("viewer.js", "text/javascript; charset=utf-8"),
-    "/three.bundle.min.js": ("three.bundle.min.js", "text/javascript; charset=utf-8"),
-    "/THREE_LICENSE.txt": ("THREE_LICENSE.txt", "text/plain; charset=utf-8"),
-}
-
-
-def _load_assets() -> dict[str, tuple[bytes, str]]:
-    static = importlib.resources.files(__package__) / "static"
-    return {path: ((static / name).read_bytes(), kind) for path, (name, kind) in _ASSETS.items()}
-
 
 class Viewer:
     """Serves a scene's surface and a looping trajectory to a browser page (three.js, no network needed).
@@ -89,7 +74,7 @@ class Viewer:
         self._default_frame_dt = trajectory.check_frame_dt(
             frame_dt if frame_dt is not None else getattr(scene, "dt", 1.0 / 60.0)
         )
-        self._assets = _load_assets()
+        self._assets = page_assets()
         # Writers (loop_states, markers) hold _write_lock while they pack; _lock only guards the swap of
         # the finished message, so downloads never wait for packing.
         self._write_lock = threading.Lock()
