@@ -145,17 +145,27 @@ _SOURCES: dict[str, Callable] = {
     "kick_batch_last": batch_last.kick_batch_last,
     "viscous_kick_batch_last": batch_last.viscous_kick_batch_last,
 }
-# Inductor's C++ backend inlines an intermediate with a single consumer into that consumer's loop,
-# so a per-element quantity broadcast over a 12×12 block (the muscle's 3×3 fibre stiffness, the
+# Inductor inlines an intermediate with a single consumer into that consumer's loop, so a
+# per-element quantity broadcast over a 12×12 block (the muscle's 3×3 fibre stiffness, the
 # neo-Hookean invariants) is recomputed for every entry of the block, square roots and divisions
 # included. Realizing every intermediate of more than a few operations into its own buffer first
-# took the worm's compiled band Hessian from 0.85 to 0.53 ms (360 tets, one thread; the fibre
-# muscles' blocks alone from 0.31 to 0.07 ms). The energy and gradient gain nothing from it (their
-# intermediates are read once), and GPU code keeps Inductor's defaults. The neo-Hookean blocks' two
-# strain-map products are written so that Inductor fuses them too (`energysim.linalg.small_matmul`):
-# 0.53 → 0.46 ms for one worm, 31 → 25 ms for 64, 1.14 → 0.97 ms for the 810-tet cantilever
-# (the fastest of 30–200 calls each way, alternating in one process).
-_CPU_OPTIONS: dict[str, dict[str, object]] = {"hessian_entries": {"realize_opcount_threshold": 4}}
+# took the worm's compiled band Hessian on the CPU from 0.85 to 0.53 ms (360 tets, one thread; the
+# fibre muscles' blocks alone from 0.31 to 0.07 ms); there the energy and gradient gain nothing from
+# it (their intermediates are read once, and their 3×3 products stay `@`). The neo-Hookean blocks'
+# two strain-map products are written so that Inductor fuses them too
+# (`energysim.linalg.small_matmul`): 0.53 → 0.46 ms for one worm, 31 → 25 ms for 64, 1.14 → 0.97
+# ms for the 810-tet cantilever (the fastest of 30–200 calls each way, alternating in one process).
+# On a GPU every small product is fused, so every evaluation of the implicit step recomputes: there
+# all of them realize. For 4,096 worms on one H100 the level Hessian took 27.5 instead of 35.8 ms a
+# call, and a step with a budget of 4 Newton iterations 270 instead of 309 ms (docs/envs.md).
+_REALIZE: dict[str, object] = {"realize_opcount_threshold": 4}
+_OPTIONS: dict[str, dict[str, dict[str, object]]] = {
+    "cpu": {"hessian_entries": _REALIZE},
+    "cuda": {
+        name: _REALIZE
+        for name in ("energy", "energy_and_gradient", "term_energies", "hessian_entries", "trial", "cut_back")
+    },
+}
 _COMPILED: dict[tuple[str, str], Callable] = {}
 _FAILED: set[str] = set()
 
@@ -165,7 +175,7 @@ def _compiled(name: str, device_type: str) -> Callable | None:
         return None
     key = (name, device_type)
     if key not in _COMPILED:
-        options = _CPU_OPTIONS.get(name) if device_type == "cpu" else None
+        options = _OPTIONS.get(device_type, {}).get(name)
         _COMPILED[key] = torch.compile(_SOURCES[name], options=options)
     return _COMPILED[key]
 
