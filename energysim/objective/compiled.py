@@ -158,7 +158,8 @@ _SOURCES: dict[str, Callable] = {
 # On a GPU every small product is fused, so every evaluation of the implicit step recomputes: there
 # all of them realize. For 4,096 worms on one H100 the level Hessian took 27.5 instead of 35.8 ms a
 # call, and a step with a budget of 4 Newton iterations 270 instead of 309 ms (docs/envs.md). On
-# the CPU, realizing every evaluation made the first compile of a 64-worm step run past 20 minutes.
+# the CPU, with every evaluation realized, a 64-worm env had not finished its first compiled steps
+# after 20 minutes.
 _REALIZE: dict[str, object] = {"realize_opcount_threshold": 4}
 _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
     "cpu": {"hessian_entries": _REALIZE},
