@@ -180,11 +180,9 @@ class NewtonCG(Solver):
             searched.append(part)
             return part
 
-        # Backtracking alone pays where an evaluation costs in proportion to its rows: on a CPU. On a
-        # GPU the whole batch is evaluated at about the cost of a few rows, and every new number of
-        # refusing rows would compile the evaluations again (docs/solvers.md, "Line search").
-        alone = root.subset is not None and x.device.type == "cpu"
-        restrict = rows_alone if alone else None
+        # alone on a CPU only: a GPU evaluates the whole batch at about the cost of a few rows, and each
+        # new number of refusing rows would compile the evaluations again (docs/solvers.md)
+        restrict = rows_alone if root.subset is not None and x.device.type == "cpu" else None
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
