@@ -16,12 +16,16 @@ from energysim.creatures import load_creature, resting_state
 from energysim.integrators.adjoint import step_terms
 from energysim.integrators.common import state_energies
 from energysim.objective import compiled
+from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.objective import Objective
 
 
-def _worm_objective(batch: int = 1) -> tuple[es.Scene, Objective, torch.Tensor]:
-    """The step objective of the worm lying on the ground with its muscles on, at a perturbed x."""
+def _worm_objective(batch: int = 1, viscosity: bool = False) -> tuple[es.Scene, Objective, torch.Tensor]:
+    """The step objective of the worm lying on the ground with its muscles on (and the env's body
+    viscosity where asked), at a perturbed x."""
     scene = load_creature("worm").scene(1 / 60, 0.8)
+    if viscosity:
+        scene.add(es.Viscosity(30.0))
     generator = torch.Generator().manual_seed(0)
     state = resting_state(scene).reshape(1, -1).expand(batch, -1)
     x, v = scene.split_state(state)
@@ -106,9 +110,10 @@ def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     assert torch.equal(objective.dense_hessian(x)[0, 0], torch.eye(scene.num_vertices * 3, dtype=x.dtype)[0])
 
 
-def _pinned_worm_objective(pinned: bool) -> tuple[es.Scene, Objective, torch.Tensor]:
-    """`_worm_objective` of 2 entries, with vertices 0, 5 and 77 fixed where `pinned`."""
-    scene, objective, x = _worm_objective(batch=2)
+def _pinned_worm_objective(pinned: bool, batch: int = 2) -> tuple[es.Scene, Objective, torch.Tensor]:
+    """`_worm_objective` of `batch` entries, with vertices 0, 5 and 77 fixed where `pinned`; batches
+    of `BATCH_LAST_MIN_BATCH` or more with the body's viscosity."""
+    scene, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
     if pinned:
         free = scene.free.clone()
         free[[0, 5, 77]] = False
@@ -123,15 +128,17 @@ def _without_corner(bands: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("pinned", [False, True])
-def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: bool):
+@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
+def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: bool, batch: int):
     # assembled straight into band storage: the muscle and elastic blocks of the same elements are
-    # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated
-    scene, objective, x = _pinned_worm_objective(pinned)
+    # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated.
+    # A batch of `BATCH_LAST_MIN_BATCH` takes the batch-last entries (`energysim.fem.hessian_entries`)
+    scene, objective, x = _pinned_worm_objective(pinned, batch)
     layout = es.NewtonCG()._layout(objective.element_groups(), x)
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
     bands = objective.band_hessian(x, layout)
-    expected = _without_corner(dense.reshape(2, -1)[:, layout.band_entries])
+    expected = _without_corner(dense.reshape(batch, -1)[:, layout.band_entries])
     assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
     if pinned:
         # a pinned DOF's column holds the identity's: 1 on the diagonal, 0 below it
@@ -144,7 +151,7 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         bands = objective.band_hessian(x, layout)
         objective.compiled = False
         dense = objective.hessian(x).dense(x)
-        expected = _without_corner(dense.reshape(2, -1)[:, layout.band_entries])
+        expected = _without_corner(dense.reshape(batch, -1)[:, layout.band_entries])
         assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 

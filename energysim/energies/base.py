@@ -26,6 +26,7 @@ import weakref
 import torch
 from torch import Tensor, nn
 
+from energysim.fem.hessian_entries import upper_entries
 from energysim.mesh import SimplexMesh
 
 
@@ -203,6 +204,17 @@ class ElementEnergy(EnergyTerm):
         b, shape `[m, B]` in m, `action` transposed `[a, B]` or None, and the result's `[i][b]` is
         ∂E/∂x_bi, `[m, B]` in N."""
         raise NotImplementedError
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """The upper entries of every element's Hessian block (in the order of
+        `energysim.fem.hessian_entries.upper_entries`) with the batch innermost, `[m, B]` each, in
+        N/m, for the compiled Hessian of a batch (`energysim.objective.batch_last`); `corners` and
+        `action` as for `batch_last_forces`. This default transposes `element_hessian`'s blocks;
+        terms on the hot path write theirs as scalar arithmetic (`energysim.fem.hessian_entries`)."""
+        positions = torch.stack([torch.stack(coordinate) for coordinate in corners]).permute(3, 2, 1, 0)
+        blocks = self.element_hessian(positions, None if action is None else action.T)
+        pairs = upper_entries(len(corners[0]), len(corners))
+        return [blocks[:, :, row, column].T for row, column in pairs]
 
     def forward(self, x: Tensor, action: Tensor | None = None) -> Tensor:
         return self.element_energy(gather_vertices(x, self.element_vertices), action).sum(dim=-1)

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
 from energysim.energies.muscles import contraction
+from energysim.fem.hessian_entries import fibre_hessian_entries
 from energysim.fem.kernels import fibre_energy_and_gradient, fibre_forces_entries, fibre_hessian_blocks
 from energysim.fem.kinematics import shape_gradients, simplex_rest_frame
 from energysim.mesh import SimplexMesh, format_indices
@@ -150,13 +151,22 @@ class FibreMuscles(ElementEnergy):
     def batch_last_forces(self, corners: list[list[Tensor]], action: Tensor | None) -> list[list[Tensor]]:
         """∂E/∂x entry by entry with the batch innermost (see `ElementEnergy.batch_last_forces`): a
         spring's force along the fibre vector (`energysim.fem.kernels.fibre_forces_entries`)."""
+        return fibre_forces_entries(corners, self.fibre_weights, *self._batch_last_spring(action))
+
+    def _batch_last_spring(self, action: Tensor | None) -> tuple[Tensor, Tensor]:
+        # V k `[m, 1]` (or a scalar) and λ* `[m, B]` (or a 0-d 1) of the batch-last kernels, from the
+        # transposed action `[a, B]`
         if action is None:
             target = self.rest_volume.new_ones(())
         else:
             target = 1.0 - self.max_contraction * action[self.element_actuator].clamp(-1.0, 1.0)
         stiffness = self.element_stiffness() * self.rest_volume
-        stiffness = stiffness[:, None] if stiffness.ndim else stiffness
-        return fibre_forces_entries(corners, self.fibre_weights, stiffness, target)
+        return (stiffness[:, None] if stiffness.ndim else stiffness), target
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """The upper entries of every actuated element's Hessian block, batch innermost (see
+        `ElementEnergy.batch_last_hessian_entries`; `energysim.fem.hessian_entries.fibre_hessian_entries`)."""
+        return fibre_hessian_entries(corners, self.fibre_weights, *self._batch_last_spring(action))
 
     def fibre_stretch(self, x: Tensor) -> Tensor:
         """‖F m‖ of every actuated element at positions `x` `[B, n, d]`, shape `[B, m_active]`."""

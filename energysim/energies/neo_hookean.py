@@ -7,6 +7,7 @@ from torch import Tensor
 
 from energysim.energies.base import as_parameter, check_per_element, check_positive
 from energysim.energies.derived import DensityEnergy
+from energysim.fem.hessian_entries import stable_neo_hookean_hessian_entries
 from energysim.fem.kernels import (
     element_major_energy_and_gradient,
     stable_neo_hookean_density_and_stress,
@@ -95,6 +96,13 @@ class NeoHookean(DensityEnergy):
         mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
         P = stable_neo_hookean_stress_entries(F, mu, lam)
         return corner_forces_entries(P, self.shape_gradient_t, self.rest_volume)
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """The upper entries of every element's Hessian block, batch innermost (see
+        `ElementEnergy.batch_last_hessian_entries`), as scalar arithmetic
+        (`energysim.fem.hessian_entries.stable_neo_hookean_hessian_entries`)."""
+        mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
+        return stable_neo_hookean_hessian_entries(corners, self.shape_gradient_t, self.rest_volume, mu, lam)
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         """Exact per-element Hessian blocks V Sᵀ ∂²ψ/∂F² S, shape `[B, m, (d+1)d, (d+1)d]`, in N/m.

@@ -30,6 +30,7 @@ from energysim.energies.base import (
     check_positive,
     scatter_vertices,
 )
+from energysim.fem.hessian_entries import lagged_viscosity_hessian_entries
 from energysim.fem.kernels import lagged_viscosity_hessian_blocks, viscous_stress, viscous_stress_entries
 from energysim.fem.kinematics import (
     corner_forces_entries,
@@ -136,7 +137,11 @@ class LaggedViscosity(ElementEnergy):
         self.element_vertices = viscosity.element_vertices
         self.rest_edge_inverse = viscosity.rest_edge_inverse
         self.shape_gradient = viscosity.shape_gradient
+        self.shape_gradient_t = viscosity.shape_gradient_t
         self.start_gradient = start_gradient
+        # F_n batch innermost, `[d, d, m, B]`, for `batch_last_hessian_entries`: read strided from
+        # `start_gradient` the constant entries took longer than the neo-Hookean ones
+        self.start_gradient_t = start_gradient.permute(2, 3, 1, 0).contiguous()
         # η V / h per element, a tensor: compiled evaluations then need no new graph for a new h
         step = torch.as_tensor(dt, dtype=start_gradient.dtype, device=start_gradient.device)
         self.weight = viscosity.viscosity * viscosity.rest_volume / step
@@ -161,3 +166,9 @@ class LaggedViscosity(ElementEnergy):
         """Constant blocks (ηV/h)[(F_nF_nᵀ)_kl ∇N_b·∇N_c + (F_n∇N_c)_k (F_n∇N_b)_l], shape
         `[B, m, (d+1)d, (d+1)d]`, in N/m (closed form, checked against autograd)."""
         return lagged_viscosity_hessian_blocks(self.start_gradient, self.shape_gradient, self.weight)
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """The upper entries of the constant blocks, batch innermost (see
+        `ElementEnergy.batch_last_hessian_entries`;
+        `energysim.fem.hessian_entries.lagged_viscosity_hessian_entries`)."""
+        return lagged_viscosity_hessian_entries(self.start_gradient_t, self.shape_gradient_t, self.weight)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from energysim.fem.hessian_entries import upper_entries
 from energysim.linalg.assembly import dof_indices
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.linalg.caching import IdentityCache
@@ -134,6 +135,27 @@ def band_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> T
         return torch.where(row >= column, column * width + (row - column), band_length(layout)).reshape(-1)
 
     return _POSITIONS.get((layout, element_vertices), dim, build)
+
+
+def band_upper_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> Tensor:
+    """Where the upper entries of element Hessian blocks (`energysim.fem.hessian_entries.upper_entries`,
+    entry-major: entry p of element e at p·m + e, as the batch-last Hessian stacks them) land in one
+    matrix's band storage, shape `[P·m]`: each at its own place or its transpose's, whichever lies
+    in the stored lower triangle. Cached per layout and vertex tensor."""
+
+    def build() -> Tensor:
+        pairs = upper_entries(element_vertices.shape[1], dim)
+        device = element_vertices.device
+        rows, columns = (torch.tensor(index, device=device) for index in zip(*pairs, strict=True))
+        position = layout.band_position[dof_indices(element_vertices, dim)]
+        first, second = position[:, rows], position[:, columns]
+        low, high = torch.minimum(first, second), torch.maximum(first, second)
+        return (low * (layout.half_bandwidth + 1) + (high - low)).T.reshape(-1)
+
+    return _UPPER_POSITIONS.get((layout, element_vertices), dim, build)
+
+
+_UPPER_POSITIONS: IdentityCache[Tensor] = IdentityCache(capacity=32)
 
 
 def band_diagonal_positions(layout: LevelLayout) -> Tensor:

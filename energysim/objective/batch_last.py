@@ -1,10 +1,13 @@
-"""Leapfrog kicks of many bodies at once, laid out batch-last, for `energysim.objective.compiled`.
+"""Leapfrog kicks and Hessians of many bodies at once, laid out batch-last, for
+`energysim.objective.compiled`.
 
 States are `[n·d, B]`, the batch innermost: gathers and scatters move rows of B contiguous numbers,
 and every element kernel (`ElementEnergy.batch_last_forces`,
-`DissipativeEnergy.batch_last_dissipation_gradient`) is scalar arithmetic that the compiler
-vectorises over the batch. These functions are compiled by `energysim.objective.compiled`, which
-drives them (`leapfrog`); they compute `energysim.integrators.explicit.leapfrog`'s kicks.
+`DissipativeEnergy.batch_last_dissipation_gradient`, `ElementEnergy.batch_last_hessian_entries`)
+is scalar arithmetic that the compiler vectorises over the batch. These functions are compiled by
+`energysim.objective.compiled`, which drives them (`leapfrog`, and `hessian_entries` through
+`energysim.objective.compiled_hessian`); they compute `energysim.integrators.explicit.leapfrog`'s
+kicks and the step objective's Hessian in band storage.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import torch
 from torch import Tensor
 
 from energysim.contact.projection import project_contacts
-from energysim.energies.base import ElementEnergy, EnergyTerm, is_dissipative
+from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
 from energysim.objective.derivatives import element_groups
 
 # Batches from this size on take the batch-last layout where every element term has
@@ -147,3 +150,33 @@ def _finish_batch_last(
         natural = (x.T.reshape(batch, n, -1), v.T.reshape(batch, n, -1))
         v = project_contacts(obstacles, free, *natural, h).reshape(batch, dofs).T
     return x + drift * v, v
+
+
+def hessian_entries_batch_last(
+    terms: tuple[EnergyTerm, ...],
+    action: Tensor | None,
+    x: Tensor,
+    groups: tuple[tuple[tuple[int, ...], Tensor], ...],
+    diagonal_positions: Tensor,
+    length: int,
+) -> Tensor:
+    # `energysim.objective.compiled`'s `_hessian_entries` for a storage that keeps one triangle
+    # (band storage), batch-last: each group's summed upper entries (`batch_last_hessian_entries`,
+    # `[P, m, B]`) land at the group's positions (`band_upper_positions`) of a `[length + 1, B]`
+    # storage, the per-vertex diagonals at `diagonal_positions`; returned as `[B, length]`
+    batch, n, dim = x.shape
+    states = x.reshape(batch, n * dim).T
+    action_t = None if action is None else action.T
+    flat = x.new_zeros(length + 1, batch)
+    for term in terms:
+        if has_vertex_diagonal(term):
+            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
+            flat.index_add_(0, diagonal_positions, diagonal.T)
+    for members, positions in groups:
+        corners = _corners(states, _corner_dofs(terms[members[0]], dim, x.device))
+        entries = terms[members[0]].batch_last_hessian_entries(corners, action_t)
+        for member in members[1:]:
+            more = terms[member].batch_last_hessian_entries(corners, action_t)
+            entries = [first + second for first, second in zip(entries, more, strict=True)]
+        flat.index_add_(0, positions, torch.stack(entries).reshape(-1, batch))
+    return flat[:length].T.contiguous()

@@ -9,11 +9,12 @@ apart (TR-BDF2's energy check), a line search's first trial (the CCD step limit,
 gradient, slopes and residual where it lands), the warm start's candidates cut back to
 admissible steps with their energies, and the Hessian of a small system, its element blocks
 scattered straight into the storage a direct solve factorises, no CSR in between
-(`energysim.objective.compiled_hessian` says where each entry goes: dense, band or level blocks).
+(`energysim.objective.compiled_hessian` says where each entry goes: dense, band or level blocks;
+a batch's band storage is filled batch-last, `energysim.objective.batch_last`).
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
-kicks of `energysim.objective.batch_last`; only the Hessian's scatter into its storage is written
-here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m
+kicks and Hessian of `energysim.objective.batch_last`; only the element-major Hessian's scatter into
+its storage is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m
 with the same iterations.
 
 Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
@@ -139,6 +140,7 @@ _SOURCES: dict[str, Callable] = {
     "energy_and_gradient": evaluation.energy_and_gradient,
     "term_energies": evaluation.term_energies,
     "hessian_entries": _hessian_entries,
+    "hessian_entries_batch_last": batch_last.hessian_entries_batch_last,
     "trial": evaluation.trial,
     "cut_back": evaluation.cut_back,
     "leapfrog": _leapfrog,

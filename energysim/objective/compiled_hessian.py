@@ -20,6 +20,7 @@ from energysim.linalg.banded import (
     band_diagonal_positions,
     band_length,
     band_positions,
+    band_upper_positions,
     eliminate_fixed_in_bands,
 )
 from energysim.linalg.block_tridiagonal import LevelLayout
@@ -30,7 +31,7 @@ from energysim.linalg.level_storage import (
     level_positions,
     padding_identity,
 )
-from energysim.objective.compiled import call
+from energysim.objective.compiled import BATCH_LAST_MIN_BATCH, call
 from energysim.objective.derivatives import element_groups
 
 __all__ = ["band_hessian", "dense_hessian", "level_hessian"]
@@ -91,9 +92,18 @@ def band_hessian(
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
     eliminated, by the compiled function, or None."""
     batch, n, dim = x.shape
-    positions = functools.partial(band_positions, layout, dim=dim)
     diagonal = band_diagonal_positions(layout)
-    flat = _hessian_in_storage(terms, action, x, positions, diagonal, band_length(layout))
+    if batch >= BATCH_LAST_MIN_BATCH:
+        # batch-last: every element kernel one loop vectorised over the batch, half the entries
+        groups = tuple(
+            (members, band_upper_positions(layout, terms[members[0]].element_vertices, dim))
+            for members in element_groups(terms)
+        )
+        length = band_length(layout)
+        flat = call("hessian_entries_batch_last", tuple(terms), action, x, groups, diagonal, length)
+    else:
+        positions = functools.partial(band_positions, layout, dim=dim)
+        flat = _hessian_in_storage(terms, action, x, positions, diagonal, band_length(layout))
     if flat is None:
         return None
     bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
