@@ -38,8 +38,11 @@ def _worm_objective(batch: int = 1, viscosity: bool = False) -> tuple[es.Scene, 
     return scene, objective, probe
 
 
-def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones():
-    _, objective, x = _worm_objective(batch=2)
+@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
+def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(batch: int):
+    # a batch of `BATCH_LAST_MIN_BATCH` (with the body's viscosity) evaluates its element terms
+    # batch-last (`batch_last_energy_and_forces`)
+    _, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
     assert any(isinstance(term, LaggedFriction) for term in objective.terms)  # every kind of term
     energy, gradient = objective.energy_and_gradient(x)
     eager_energy = objective.energy(x)
@@ -53,9 +56,10 @@ def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones():
     assert torch.allclose(compiled_dense, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
-def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start():
+@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
+def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start(batch: int):
     # the first trial of a line search: CCD-limited step, energy, gradient, slopes and residual
-    _, objective, x = _worm_objective(batch=2)
+    _, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
     x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
     energy, gradient = objective.energy_and_gradient(x)
     direction = -1e-3 * gradient / gradient.abs().amax()

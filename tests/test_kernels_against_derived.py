@@ -11,11 +11,13 @@ from energysim.energies.derived import density_stiffness, density_stress
 from energysim.energies.fibre_muscles import fibre_muscle_density
 from energysim.fem.kernels import (
     element_major_energy_and_gradient,
+    fibre_energy_and_forces_entries,
     fibre_energy_and_gradient,
     fibre_forces_entries,
     fibre_hessian_blocks,
     lagged_viscosity_hessian_blocks,
     stable_neo_hookean_density_and_stress,
+    stable_neo_hookean_density_and_stress_entries,
     stable_neo_hookean_stress_entries,
     stable_neo_hookean_stress_hessian,
     viscous_stress,
@@ -86,8 +88,10 @@ def test_neo_hookean_stress_entries_equal_the_derived_stress(dim):
     F_entries = [[F[:, i, j] for j in range(dim)] for i in range(dim)]
     entries = stable_neo_hookean_stress_entries(F_entries, mu, lam)
     got = torch.stack([torch.stack(row, dim=-1) for row in entries], dim=-2)
-    derived, _ = density_stress(lambda G: stable_neo_hookean_density(G, mu, lam), F)
+    derived, derived_density = density_stress(lambda G: stable_neo_hookean_density(G, mu, lam), F)
     assert close(got, derived)
+    density, _ = stable_neo_hookean_density_and_stress_entries(F_entries, mu, lam)
+    assert close(density, derived_density)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -149,6 +153,8 @@ def test_fibre_gradient_blocks_and_entries_equal_autograd_of_the_density(dim):
     entries = fibre_forces_entries(corner_entries, weights, stiffness[:, None], target.T)
     got = torch.stack([torch.stack(row, dim=-1) for row in entries], dim=-1).permute(1, 0, 2, 3)
     assert close(got, gradient)
+    entry_energy, _ = fibre_energy_and_forces_entries(corner_entries, weights, stiffness[:, None], target.T)
+    assert close(entry_energy.T, energy)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -205,6 +205,19 @@ class ElementEnergy(EnergyTerm):
         ∂E/∂x_bi, `[m, B]` in N."""
         raise NotImplementedError
 
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """Every element's energy `[m, B]` in J and ∂E/∂x_bi `[i][b]` `[m, B]` in N, the batch
+        innermost, for compiled evaluations of a batch (`energysim.objective.batch_last`); `corners`
+        and `action` as for `batch_last_forces`. This default transposes
+        `element_energy_and_gradient`'s (a term with `has_gradient_kernel`); terms on the hot path
+        write theirs as scalar arithmetic."""
+        positions = torch.stack([torch.stack(coordinate) for coordinate in corners]).permute(3, 2, 1, 0)
+        energy, gradient = self.element_energy_and_gradient(positions, None if action is None else action.T)
+        corner_count, dim = positions.shape[2], positions.shape[3]
+        return energy.T, [[gradient[:, :, b, i].T for b in range(corner_count)] for i in range(dim)]
+
     def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
         """The upper entries of every element's Hessian block (in the order of
         `energysim.fem.hessian_entries.upper_entries`) with the batch innermost, `[m, B]` each, in

@@ -14,7 +14,12 @@ from torch import Tensor
 from energysim.energies.base import ElementEnergy, as_parameter, check_per_element, check_positive
 from energysim.energies.muscles import contraction
 from energysim.fem.hessian_entries import fibre_hessian_entries
-from energysim.fem.kernels import fibre_energy_and_gradient, fibre_forces_entries, fibre_hessian_blocks
+from energysim.fem.kernels import (
+    fibre_energy_and_forces_entries,
+    fibre_energy_and_gradient,
+    fibre_forces_entries,
+    fibre_hessian_blocks,
+)
 from energysim.fem.kinematics import shape_gradients, simplex_rest_frame
 from energysim.mesh import SimplexMesh, format_indices
 
@@ -162,6 +167,14 @@ class FibreMuscles(ElementEnergy):
             target = 1.0 - self.max_contraction * action[self.element_actuator].clamp(-1.0, 1.0)
         stiffness = self.element_stiffness() * self.rest_volume
         return (stiffness[:, None] if stiffness.ndim else stiffness), target
+
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """V k/2 (λ − λ*)² `[m_active, B]` and ∂E/∂x entry by entry, batch innermost (see
+        `ElementEnergy.batch_last_energy_and_forces`;
+        `energysim.fem.kernels.fibre_energy_and_forces_entries`)."""
+        return fibre_energy_and_forces_entries(corners, self.fibre_weights, *self._batch_last_spring(action))
 
     def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
         """The upper entries of every actuated element's Hessian block, batch innermost (see

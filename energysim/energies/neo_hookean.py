@@ -11,6 +11,7 @@ from energysim.fem.hessian_entries import stable_neo_hookean_hessian_entries
 from energysim.fem.kernels import (
     element_major_energy_and_gradient,
     stable_neo_hookean_density_and_stress,
+    stable_neo_hookean_density_and_stress_entries,
     stable_neo_hookean_stress_entries,
     stable_neo_hookean_stress_hessian,
 )
@@ -96,6 +97,17 @@ class NeoHookean(DensityEnergy):
         mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
         P = stable_neo_hookean_stress_entries(F, mu, lam)
         return corner_forces_entries(P, self.shape_gradient_t, self.rest_volume)
+
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """V ψ(F) `[m, B]` and ∂E/∂x entry by entry, batch innermost (see
+        `ElementEnergy.batch_last_energy_and_forces`), as scalar arithmetic."""
+        F = deformation_gradient_entries(corners, self.shape_gradient_t)
+        mu, lam = (value[:, None] if value.ndim else value for value in self.lame())
+        density, P = stable_neo_hookean_density_and_stress_entries(F, mu, lam)
+        forces = corner_forces_entries(P, self.shape_gradient_t, self.rest_volume)
+        return self.rest_volume[:, None] * density, forces
 
     def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
         """The upper entries of every element's Hessian block, batch innermost (see

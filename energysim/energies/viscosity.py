@@ -31,7 +31,12 @@ from energysim.energies.base import (
     scatter_vertices,
 )
 from energysim.fem.hessian_entries import lagged_viscosity_hessian_entries
-from energysim.fem.kernels import lagged_viscosity_hessian_blocks, viscous_stress, viscous_stress_entries
+from energysim.fem.kernels import (
+    lagged_viscosity_energy_and_stress_entries,
+    lagged_viscosity_hessian_blocks,
+    viscous_stress,
+    viscous_stress_entries,
+)
 from energysim.fem.kinematics import (
     corner_forces_entries,
     deformation_gradient,
@@ -166,6 +171,17 @@ class LaggedViscosity(ElementEnergy):
         """Constant blocks (ηV/h)[(F_nF_nᵀ)_kl ∇N_b·∇N_c + (F_n∇N_c)_k (F_n∇N_b)_l], shape
         `[B, m, (d+1)d, (d+1)d]`, in N/m (closed form, checked against autograd)."""
         return lagged_viscosity_hessian_blocks(self.start_gradient, self.shape_gradient, self.weight)
+
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """`element_energy` `[m, B]` and its corner gradients entry by entry, batch innermost (see
+        `ElementEnergy.batch_last_energy_and_forces`;
+        `energysim.fem.kernels.lagged_viscosity_energy_and_stress_entries`)."""
+        F = deformation_gradient_entries(corners, self.shape_gradient_t)
+        weight = self.weight[:, None]
+        energy, stress = lagged_viscosity_energy_and_stress_entries(F, self.start_gradient_t, weight)
+        return energy, corner_forces_entries(stress, self.shape_gradient_t, self.weight)
 
     def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
         """The upper entries of the constant blocks, batch innermost (see

@@ -21,7 +21,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from energysim.fem.kinematics import deformation_gradient_entries
-from energysim.fem.materials import smith_parameters
+from energysim.fem.materials import cofactor_entries, invariant_excess_entries, smith_parameters
 
 Entries = list[list[Tensor]]
 
@@ -31,39 +31,6 @@ def upper_entries(corners: int, dim: int) -> tuple[tuple[int, int], ...]:
     row r is coordinate r % d of corner r // d."""
     size = corners * dim
     return tuple((row, column) for row in range(size) for column in range(row, size))
-
-
-def _cofactor_entries(F: Entries) -> Entries:
-    # cof F entry by entry: [[F11, −F10], [−F01, F00]] in 2D, cyclic minors in 3D
-    if len(F) == 2:
-        return [[F[1][1], -F[1][0]], [-F[0][1], F[0][0]]]
-    return [
-        [
-            F[(i + 1) % 3][(j + 1) % 3] * F[(i + 2) % 3][(j + 2) % 3]
-            - F[(i + 1) % 3][(j + 2) % 3] * F[(i + 2) % 3][(j + 1) % 3]
-            for j in range(3)
-        ]
-        for i in range(3)
-    ]
-
-
-def _invariant_entries(F: Entries) -> tuple[Tensor, Tensor]:
-    # I_C − 3 and J − 1 from G = F − I (`energysim.fem.materials.invariant_excesses`), entry by entry
-    dim = len(F)
-    G = [[F[i][j] - 1.0 if i == j else F[i][j] for j in range(dim)] for i in range(dim)]
-    trace = sum(G[i][i] for i in range(dim))
-    squares = 0.5 * sum(G[i][j] * G[i][j] for i in range(dim) for j in range(dim))
-    if dim == 2:
-        higher = G[0][0] * G[1][1] - G[0][1] * G[1][0]
-    else:
-        determinant = (
-            G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1])
-            - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0])
-            + G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0])
-        )
-        crossed = sum(G[i][j] * G[j][i] for i in range(3) for j in range(3))
-        higher = 0.5 * (trace * trace - crossed) + determinant
-    return 2.0 * (trace + squares), trace + higher
 
 
 def _mapped(matrix: Entries, gradients: list[list[Tensor]]) -> Entries:
@@ -90,7 +57,7 @@ def stable_neo_hookean_hessian_entries(
     dim = len(corners)
     F = deformation_gradient_entries(corners, shape_gradient_t)
     mu_smith, lam_smith, alpha = smith_parameters(mu, lam)
-    stretch_excess, volume_excess = _invariant_entries(F)
+    stretch_excess, volume_excess, _ = invariant_excess_entries(F)
     inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
     volume = rest_volume[:, None]
     identity_weight = volume * mu_smith * (1.0 - inverse)
@@ -99,7 +66,7 @@ def stable_neo_hookean_hessian_entries(
     det_weight = volume * lam_smith * (volume_excess + 1.0 - alpha)
     gradients = _corner_gradients(shape_gradient_t)
     stretched = _mapped(F, gradients)
-    cofactored = _mapped(_cofactor_entries(F), gradients)
+    cofactored = _mapped(cofactor_entries(F), gradients)
     det_blocks = _det_hessian_blocks(F, gradients, det_weight)
     entries = []
     for row, column in upper_entries(dim + 1, dim):

@@ -9,13 +9,16 @@ form, to 1e-10 relative, in 2D and 3D, at inverted and flat F included.
 
 - stable neo-Hookean: P with ψ in one pass (`stable_neo_hookean_density_and_stress`), ∂²ψ/∂F²
   (`stable_neo_hookean_stress_hessian`), P entry by entry for batch-last compiled kicks
-  (`stable_neo_hookean_stress_entries`), and the element-major compiled energy and gradient
+  (`stable_neo_hookean_stress_entries`, with ψ `stable_neo_hookean_density_and_stress_entries`), and
+  the element-major compiled energy and gradient
   (`element_major_energy_and_gradient`);
 - fibre muscles: the spring-like gradient and Hessian blocks in the fibre vector
   (`fibre_energy_and_gradient`, `fibre_hessian_blocks`), and their batch-last forces
-  (`fibre_forces_entries`);
-- viscosity: the viscous stress 2η F Ė (`viscous_stress`, `viscous_stress_entries`) and the
-  constant Hessian blocks of one implicit step's lagged viscosity (`lagged_viscosity_hessian_blocks`).
+  (`fibre_forces_entries`, with the energy `fibre_energy_and_forces_entries`);
+- viscosity: the viscous stress 2η F Ė (`viscous_stress`, `viscous_stress_entries`), and one
+  implicit step's lagged viscosity: its energy and stress entry by entry
+  (`lagged_viscosity_energy_and_stress_entries`) and its constant Hessian blocks
+  (`lagged_viscosity_hessian_blocks`).
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ import torch
 from torch import Tensor
 
 from energysim.fem.materials import (
+    cofactor_entries,
     cofactor_matrix,
+    invariant_excess_entries,
     invariant_excesses,
     smith_parameters,
     y_minus_log1p,
@@ -136,7 +141,16 @@ _DET_HESSIAN = _det_hessian_tables()
 
 def stable_neo_hookean_stress_entries(F: list[list[Tensor]], mu: Tensor, lam: Tensor) -> list[list[Tensor]]:
     """P = ∂ψ/∂F of `stable_neo_hookean_density` with F and P given entry by entry: `F[i][j]` are
-    tensors of one shape `[...]`, and so are the returned `P[i][j]`, in Pa.
+    tensors of one shape `[...]`, and so are the returned `P[i][j]`, in Pa
+    (`stable_neo_hookean_density_and_stress_entries` without ψ, which a compiler drops)."""
+    return stable_neo_hookean_density_and_stress_entries(F, mu, lam)[1]
+
+
+def stable_neo_hookean_density_and_stress_entries(
+    F: list[list[Tensor]], mu: Tensor, lam: Tensor
+) -> tuple[Tensor, list[list[Tensor]]]:
+    """ψ(F) in J/m³ and P = ∂ψ/∂F in Pa of `stable_neo_hookean_density`, with F and P given entry by
+    entry: `F[i][j]` are tensors of one shape `[...]`, and so are ψ and the returned `P[i][j]`.
 
     The same formulas, written as scalar expressions: compiled, they fuse into one loop over the
     entries' elements, where the matrix form's reductions over the last axes and stacks each end a
@@ -148,35 +162,19 @@ def stable_neo_hookean_stress_entries(F: list[list[Tensor]], mu: Tensor, lam: Te
     """
     dim = len(F)
     mu_smith, lam_smith, _ = smith_parameters(mu, lam)
-    # in G = F − I, as `_invariant_excesses`, so that nothing loses digits near F = I
-    G = [[F[i][j] - 1.0 if i == j else F[i][j] for j in range(dim)] for i in range(dim)]
-    trace = sum(G[i][i] for i in range(dim))
-    squares = 0.5 * sum(G[i][j] * G[i][j] for i in range(dim) for j in range(dim))
-    if dim == 2:
-        higher = G[0][0] * G[1][1] - G[0][1] * G[1][0]
-        cofactor = [[F[1][1], -F[1][0]], [-F[0][1], F[0][0]]]
-    else:
-        determinant = (
-            G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1])
-            - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0])
-            + G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0])
-        )
-        higher = (
-            0.5 * (trace * trace - sum(G[i][j] * G[j][i] for i in range(3) for j in range(3))) + determinant
-        )
-        # cof F_ij = (−1)^(i+j) times the minor: cyclic in 3D
-        cofactor = [
-            [
-                F[(i + 1) % 3][(j + 1) % 3] * F[(i + 2) % 3][(j + 2) % 3]
-                - F[(i + 1) % 3][(j + 2) % 3] * F[(i + 2) % 3][(j + 1) % 3]
-                for j in range(3)
-            ]
-            for i in range(3)
-        ]
-    y = 0.5 * (trace + squares)  # (I_C − 3)/4
+    # from G = F − I, so that nothing loses digits near F = I
+    stretch_excess, volume_excess, second_order = invariant_excess_entries(F)
+    cofactor = cofactor_entries(F)
+    y = 0.25 * stretch_excess  # (I_C − 3)/4
+    density = (
+        0.75 * mu_smith * second_order
+        + 0.5 * lam_smith * volume_excess * volume_excess
+        + 0.5 * mu_smith * y_minus_log1p(y)
+    )
     along_f = 0.75 * mu_smith + 0.25 * mu_smith * y / (1.0 + y)
-    along_cofactor = lam_smith * (trace + higher) - 0.75 * mu_smith
-    return [[along_f * F[i][j] + along_cofactor * cofactor[i][j] for j in range(dim)] for i in range(dim)]
+    along_cofactor = lam_smith * volume_excess - 0.75 * mu_smith
+    stress = [[along_f * F[i][j] + along_cofactor * cofactor[i][j] for j in range(dim)] for i in range(dim)]
+    return density, stress
 
 
 def element_major_energy_and_gradient(
@@ -263,12 +261,22 @@ def fibre_forces_entries(
     """`fibre_energy_and_gradient`'s gradient entry by entry with the batch innermost: `corners[i][b]`
     `[m, B]` in m, `stiffness` V k `[m, 1]` or a scalar, `target_stretch` `[m, B]` or a scalar;
     returns ∂E/∂x_bi `[m, B]` in N, scalar arithmetic that a compiler fuses into one loop."""
+    return fibre_energy_and_forces_entries(corners, fibre_weights, stiffness, target_stretch)[1]
+
+
+def fibre_energy_and_forces_entries(
+    corners: list[list[Tensor]], fibre_weights: Tensor, stiffness: Tensor, target_stretch: Tensor
+) -> tuple[Tensor, list[list[Tensor]]]:
+    """`fibre_energy_and_gradient` entry by entry with the batch innermost: V k/2 (λ − λ*)² `[m, B]` in
+    J and ∂E/∂x_bi `[i][b]` `[m, B]` in N; arguments as `fibre_forces_entries`."""
     dim = len(corners)
     weight = [fibre_weights[:, b][:, None] for b in range(dim + 1)]
     fibre = [sum(weight[b] * corners[i][b] for b in range(dim + 1)) for i in range(dim)]
     stretch = torch.sqrt(sum(component * component for component in fibre) + 1e-30)
-    tension = stiffness * (stretch - target_stretch) / stretch
-    return [[tension * fibre[i] * weight[b] for b in range(dim + 1)] for i in range(dim)]
+    excess = stretch - target_stretch
+    tension = stiffness * excess / stretch
+    energy = 0.5 * stiffness * excess * excess
+    return energy, [[tension * fibre[i] * weight[b] for b in range(dim + 1)] for i in range(dim)]
 
 
 # --- viscosity: D = V η ‖Ė‖², Ė = sym(Fᵀ Ḟ) ----------------------------------------------------
@@ -295,6 +303,26 @@ def viscous_stress_entries(
         [2.0 * viscosity * sum(F[i][a] * rate_of_strain[a][j] for a in range(dim)) for j in range(dim)]
         for i in range(dim)
     ]
+
+
+def lagged_viscosity_energy_and_stress_entries(
+    F: list[list[Tensor]], start_gradient: list[list[Tensor]], weight: Tensor
+) -> tuple[Tensor, list[list[Tensor]]]:
+    """One step's lagged viscosity entry by entry: w ‖sym(F_nᵀ (F − F_n))‖² per element, J, and its
+    stress 2 F_n sym(F_nᵀ (F − F_n)), per unit w (the corner forces are w Σ_j P_ij ∇N_bj). F and
+    F_n as `[i][j]` of one shape, w broadcastable to it."""
+    dim = len(F)
+    change = [[F[i][j] - start_gradient[i][j] for j in range(dim)] for i in range(dim)]
+    product = [
+        [sum(start_gradient[k][a] * change[k][c] for k in range(dim)) for c in range(dim)] for a in range(dim)
+    ]
+    strain = [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
+    energy = weight * sum(strain[a][c] * strain[a][c] for a in range(dim) for c in range(dim))
+    stress = [
+        [2.0 * sum(start_gradient[i][a] * strain[a][j] for a in range(dim)) for j in range(dim)]
+        for i in range(dim)
+    ]
+    return energy, stress
 
 
 def lagged_viscosity_hessian_blocks(start_gradient: Tensor, shape_gradient: Tensor, weight: Tensor) -> Tensor:

@@ -77,6 +77,41 @@ def invariant_excesses(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return 2.0 * (trace + squares), trace + higher, squares - higher
 
 
+def invariant_excess_entries(F: list[list[Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+    """`invariant_excesses` with F given entry by entry (`F[i][j]`, tensors of one shape): scalar
+    arithmetic, which a compiler fuses into one loop over the entries' elements."""
+    dim = len(F)
+    G = [[F[i][j] - 1.0 if i == j else F[i][j] for j in range(dim)] for i in range(dim)]
+    trace = sum(G[i][i] for i in range(dim))
+    squares = 0.5 * sum(G[i][j] * G[i][j] for i in range(dim) for j in range(dim))
+    if dim == 2:
+        higher = G[0][0] * G[1][1] - G[0][1] * G[1][0]
+    else:
+        determinant = (
+            G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1])
+            - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0])
+            + G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0])
+        )
+        crossed = sum(G[i][j] * G[j][i] for i in range(3) for j in range(3))
+        higher = 0.5 * (trace * trace - crossed) + determinant
+    return 2.0 * (trace + squares), trace + higher, squares - higher
+
+
+def cofactor_entries(F: list[list[Tensor]]) -> list[list[Tensor]]:
+    """`cofactor_matrix` with F and cof F given entry by entry (`[i][j]`)."""
+    if len(F) == 2:
+        return [[F[1][1], -F[1][0]], [-F[0][1], F[0][0]]]
+    # cof F_ij = (−1)^(i+j) times the minor: cyclic in 3D
+    return [
+        [
+            F[(i + 1) % 3][(j + 1) % 3] * F[(i + 2) % 3][(j + 2) % 3]
+            - F[(i + 1) % 3][(j + 2) % 3] * F[(i + 2) % 3][(j + 1) % 3]
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+
+
 def y_minus_log1p(y: Tensor) -> Tensor:
     """y − log(1 + y) for y > −1, accurate for small y where the difference cancels."""
     small = y.abs() < 1e-2

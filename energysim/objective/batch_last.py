@@ -71,8 +71,9 @@ def _scatter_corners(
     gradient: Tensor, corner_dofs: Tensor, forces: Sequence[list[list[Tensor]]], dim: int
 ) -> Tensor:
     # Σ over `forces` (each [i][b] `[m, B]`) added onto the DOF rows of `gradient` `[n·d, B]`
+    corners = corner_dofs.shape[1]
     total = torch.stack(
-        [torch.stack([sum(f[i][b] for f in forces) for b in range(dim + 1)]) for i in range(dim)]
+        [torch.stack([sum(f[i][b] for f in forces) for b in range(corners)]) for i in range(dim)]
     )
     return gradient.index_add(0, corner_dofs.reshape(-1), total.reshape(-1, gradient.shape[1]))
 
@@ -150,6 +151,57 @@ def _finish_batch_last(
         natural = (x.T.reshape(batch, n, -1), v.T.reshape(batch, n, -1))
         v = project_contacts(obstacles, free, *natural, h).reshape(batch, dofs).T
     return x + drift * v, v
+
+
+def evaluates_batch_last(terms: Sequence[EnergyTerm], x: Tensor) -> tuple[int, ...]:
+    """The indices of the element terms whose energy and gradient `energysim.objective.evaluation`
+    takes batch-last (`element_energy_and_gradient`): those with a gradient kernel, while a batch of
+    `BATCH_LAST_MIN_BATCH` or more is compiled for the CPU; none otherwise (eagerly the entry-wise
+    kernels are hundreds of small operations, and a GPU keeps the per-element layout)."""
+    if not (torch.compiler.is_compiling() and x.device.type == "cpu" and x.shape[0] >= BATCH_LAST_MIN_BATCH):
+        return ()
+    return tuple(
+        index
+        for index, term in enumerate(terms)
+        if isinstance(term, ElementEnergy) and term.has_gradient_kernel and not term.is_linear
+    )
+
+
+def element_energy_and_gradient(
+    terms: Sequence[EnergyTerm], action: Tensor | None, x: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Σ of the element `terms`' energies `[B]` in J and their gradient `[B, n, d]` in N at `x`
+    `[B, n, d]`, batch-last (`batch_last_energy_and_forces`): one gather and one scatter per group
+    of terms on the same elements."""
+    batch, n, dim = x.shape
+    states = x.reshape(batch, n * dim).T
+    action_t = None if action is None else action.T
+    total = x.new_zeros(batch)
+    gradient = x.new_zeros(n * dim, batch)
+    for group in _same_elements(terms):
+        corner_dofs = _corner_dofs(terms[group[0]], dim, x.device)
+        corners = _corners(states, corner_dofs)
+        forces = []
+        for index in group:
+            energy, force = terms[index].batch_last_energy_and_forces(corners, action_t)
+            total = total + energy.sum(dim=0)
+            forces.append(force)
+        gradient = _scatter_corners(gradient, corner_dofs, forces, dim)
+    return total, gradient.T.reshape(batch, n, dim)
+
+
+def _same_elements(terms: Sequence[EnergyTerm]) -> list[list[int]]:
+    # `terms` grouped by the identity of their `element_vertices`: `element_groups` compares contents,
+    # which a compiled function would have to leave its graph for
+    groups: list[list[int]] = []
+    for index, term in enumerate(terms):
+        vertices = term.element_vertices
+        group = next((group for group in groups if terms[group[0]].element_vertices is vertices), None)
+        if group is None:
+            groups.append([index])
+        else:
+            group.append(index)
+    return groups
 
 
 def hessian_entries_batch_last(

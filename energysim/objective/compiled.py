@@ -14,8 +14,8 @@ a batch's band storage is filled batch-last, `energysim.objective.batch_last`).
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
 kicks and Hessian of `energysim.objective.batch_last`; only the element-major Hessian's scatter into
-its storage is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s worm walk to 1e-10 m
-with the same iterations.
+its storage is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s
+worm walk to 1e-10 m with the same iterations.
 
 Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
 over a 5 s walk): the worm 42.5 → 11.8, the 2D crawler 22.1 → 8.5 and the 2D walker 25.6 → 10.2

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import EnergyTerm
+from energysim.objective import batch_last
 from energysim.objective.derivatives import energy_and_gradient as autograd_energy_and_gradient
 
 
@@ -27,9 +28,14 @@ def total_energy(
     terms: Sequence[EnergyTerm], anchor: Tensor | None, action: Tensor | None, x: Tensor
 ) -> Tensor:
     """Σ_i E_i(x), shape `[B]`, in J."""
+    batched = batch_last.evaluates_batch_last(terms, x)
     total = x.new_zeros(x.shape[0])
-    for term in terms:
-        total = total + term(shifted(term, x, anchor), action)
+    if batched:
+        # the gradient goes unused, and the compiler drops it
+        total = total + batch_last.element_energy_and_gradient([terms[i] for i in batched], action, x)[0]
+    for index, term in enumerate(terms):
+        if index not in batched:
+            total = total + term(shifted(term, x, anchor), action)
     return total
 
 
@@ -46,10 +52,15 @@ def energy_and_gradient(
     Terms that declare `has_gradient_kernel` give theirs in closed form; the rest share one
     backward pass (never traced by the compiled functions, which take only terms with kernels).
     """
+    batched = batch_last.evaluates_batch_last(terms, x)
     total = x.new_zeros(x.shape[0])
     gradient = torch.zeros_like(x)
+    if batched:
+        total, gradient = batch_last.element_energy_and_gradient([terms[i] for i in batched], action, x)
     others = []
-    for term in terms:
+    for index, term in enumerate(terms):
+        if index in batched:
+            continue
         if term.has_gradient_kernel:
             value, term_gradient = term.value_and_gradient(shifted(term, x, anchor), action)
             total = total + value

@@ -1,6 +1,7 @@
-"""The batch-last Hessian entries (`energysim.fem.hessian_entries`, `batch_last_hessian_entries`)
-equal autograd's Hessian of each element energy, to 1e-10 relative, in 2D and 3D, at inverted and
-flat elements too; the default for other terms equals their element blocks."""
+"""The batch-last kernels of compiled batches: the Hessian entries (`energysim.fem.hessian_entries`,
+`batch_last_hessian_entries`) equal autograd's Hessian of each element energy, and the lagged
+viscosity's energy and forces autograd's gradient, to 1e-10 relative, in 2D and 3D, at inverted and
+flat elements too; the defaults for other terms equal their element-major kernels."""
 
 from __future__ import annotations
 
@@ -17,7 +18,13 @@ from energysim.fem.hessian_entries import (
     stable_neo_hookean_hessian_entries,
     upper_entries,
 )
-from energysim.fem.kinematics import deformation_gradient, shape_gradients
+from energysim.fem.kernels import lagged_viscosity_energy_and_stress_entries
+from energysim.fem.kinematics import (
+    corner_forces_entries,
+    deformation_gradient,
+    deformation_gradient_entries,
+    shape_gradients,
+)
 from energysim.fem.materials import stable_neo_hookean_density
 
 
@@ -99,6 +106,30 @@ def test_lagged_viscosity_entries_equal_autograd_of_its_energy(dim):
     assert close(torch.stack(got), as_upper(blocks, dim + 1, dim))
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_lagged_viscosity_energy_and_forces_entries_equal_autograd(dim):
+    elements, vertices, rest_edge_inverse, volume = simplices(dim, 130 + dim)
+    grad_n = shape_gradients(rest_edge_inverse).permute(1, 2, 0).contiguous()
+    start = deformations(dim, 140 + dim)
+    weight = 2.0 * volume
+    generator = torch.Generator().manual_seed(dim)
+    noise = torch.randn(2, *elements.shape, dim, generator=generator, dtype=torch.float64)
+    corners = vertices[elements][None] + 0.2 * noise
+
+    def energy(c: torch.Tensor) -> torch.Tensor:
+        change = deformation_gradient(c, rest_edge_inverse) - start
+        product = start.transpose(-1, -2) @ change
+        return weight * (0.5 * (product + product.transpose(-1, -2))).square().sum(dim=(-1, -2))
+
+    expected_gradient = torch.func.vmap(torch.func.grad(lambda c: energy(c).sum()))(corners)
+    F = deformation_gradient_entries(corner_entries(corners), grad_n)
+    start_entries = [[start[:, i, j][:, None] for j in range(dim)] for i in range(dim)]
+    value, stress = lagged_viscosity_energy_and_stress_entries(F, start_entries, weight[:, None])
+    forces = corner_forces_entries(stress, grad_n, weight)
+    assert close(value.T, torch.stack([energy(c) for c in corners]))
+    assert close(torch.stack([torch.stack(row) for row in forces]).permute(3, 2, 1, 0), expected_gradient)
+
+
 def test_terms_without_a_kernel_of_their_own_transpose_their_element_blocks():
     # the default `batch_last_hessian_entries` (the ground's barrier here) reads `element_hessian`
     scene = es.Scene(es.TetMesh.box(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), dt=1 / 60)
@@ -113,3 +144,7 @@ def test_terms_without_a_kernel_of_their_own_transpose_their_element_blocks():
     assert float(blocks.abs().max()) > 0  # some vertices within the barrier's range
     got = ground.batch_last_hessian_entries(corner_entries(corners), None)
     assert torch.equal(torch.stack(got), as_upper(blocks, 1, 3))
+    energy, gradient = ground.element_energy_and_gradient(corners, None)
+    value, forces = ground.batch_last_energy_and_forces(corner_entries(corners), None)
+    assert torch.equal(value, energy.T)
+    assert torch.equal(torch.stack([torch.stack(row) for row in forces]).permute(3, 2, 1, 0), gradient)
