@@ -71,6 +71,14 @@ def _level_system(matrices: torch.Tensor, like: torch.Tensor, groups: list[torch
     return LevelCholesky(*gather_blocks(values, layout), layout)
 
 
+def test_one_level_layout_serves_every_batch_size() -> None:
+    # a batch that drops its converged entries meets several sizes in one solve: the layout (a
+    # per-entry ordering) is built once, not once per size
+    groups = _chain_groups(12)
+    layouts = [level_layout_of(groups, torch.zeros(batch, 12, 3, dtype=torch.float64)) for batch in (1, 3, 7)]
+    assert layouts[0] is layouts[1] is layouts[2]
+
+
 @pytest.mark.parametrize("method", ["dense", "banded", "levels", "cg"])
 def test_each_linear_solve_equals_torch_solve_on_random_spd_systems_with_fixed_dofs(method: str) -> None:
     vertices, fixed = 12, [0, 5]

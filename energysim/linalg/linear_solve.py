@@ -191,8 +191,10 @@ CG_PLAN = LinearSolvePlan("cg")
 def level_layout_of(element_groups: Sequence[Tensor], like: Tensor) -> LevelLayout:
     """The (cached) level layout of a Hessian whose blocks couple the vertices of `element_groups`,
     for positions like `like` `[B, n, d]`."""
-    batch, n, dim = like.shape
-    return cached_layout(cached_pattern(element_groups, n, dim, batch), element_groups, n, dim)
+    _, n, dim = like.shape
+    # the layout reads one entry's pattern: built for one entry, it serves every batch size (a
+    # batch that drops its converged entries meets several in one solve)
+    return cached_layout(cached_pattern(element_groups, n, dim, 1), element_groups, n, dim)
 
 
 def cheapest_method(element_groups: Sequence[Tensor], like: Tensor, *, compiled: bool = False) -> str:
