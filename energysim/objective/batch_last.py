@@ -204,6 +204,18 @@ def _same_elements(terms: Sequence[EnergyTerm]) -> list[list[int]]:
     return groups
 
 
+def vertex_diagonal(terms: Sequence[EnergyTerm], x: Tensor) -> Tensor | None:
+    """Σ of the per-vertex Hessian diagonals (`VertexDiagonalEnergy`, the inertia) as one entry per
+    DOF, `[B, n·d]`, or None where no term has one."""
+    batch, n, dim = x.shape
+    total = None
+    for term in terms:
+        if has_vertex_diagonal(term):
+            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
+            total = diagonal if total is None else total + diagonal
+    return total
+
+
 def hessian_entries_batch_last(
     terms: tuple[EnergyTerm, ...],
     action: Tensor | None,
@@ -220,10 +232,9 @@ def hessian_entries_batch_last(
     states = x.reshape(batch, n * dim).T
     action_t = None if action is None else action.T
     flat = x.new_zeros(length + 1, batch)
-    for term in terms:
-        if has_vertex_diagonal(term):
-            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
-            flat.index_add_(0, diagonal_positions, diagonal.T)
+    diagonal = vertex_diagonal(terms, x)
+    if diagonal is not None:
+        flat.index_add_(0, diagonal_positions, diagonal.T)
     for members, positions in groups:
         corners = _corners(states, _corner_dofs(terms[members[0]], dim, x.device))
         entries = terms[members[0]].batch_last_hessian_entries(corners, action_t)

@@ -120,12 +120,11 @@ def _hessian_entries(
     # band storage): per-vertex diagonals at `diagonal_positions`; element blocks by group (terms
     # sharing their elements, summed before one scatter) at the group's positions, where the last
     # slot takes the entries the storage drops
-    batch, n, dim = x.shape
+    batch = x.shape[0]
     flat = x.new_zeros(batch, length + 1)
-    for term in terms:
-        if has_vertex_diagonal(term):
-            diagonal = term.hessian_diagonal().reshape(-1, n, 1).expand(batch, n, dim).reshape(batch, n * dim)
-            flat[:, diagonal_positions] += diagonal
+    diagonal = batch_last.vertex_diagonal(terms, x)
+    if diagonal is not None:
+        flat[:, diagonal_positions] += diagonal
     for members, positions in groups:
         element_positions = x[:, terms[members[0]].element_vertices]
         blocks = terms[members[0]].element_hessian(element_positions, action)
