@@ -12,7 +12,10 @@ import energysim as es
 from energysim.energies import derived
 from energysim.energies.derived import density_stiffness, density_stress
 from energysim.fem.materials import cofactor_matrix, lame_parameters, stable_neo_hookean_density
+from energysim.integrators.adjoint import step_terms
+from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.derivatives import autograd_element_hessian, hessian_operator
+from energysim.objective.objective import Objective
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -308,3 +311,31 @@ def test_blocks_of_terms_on_the_same_elements_are_summed_into_one_group():
     assert _relative(together.dense(x), expected) < DERIVED_RTOL
     v = torch.randn_like(x)
     assert _relative(together.matvec(v), apart[0].matvec(v) + apart[1].matvec(v)) < DERIVED_RTOL
+
+
+def test_a_compiled_batch_evaluates_the_user_density_batch_last_as_eagerly():
+    # a compiled batch of `BATCH_LAST_MIN_BATCH` takes every element term batch-last: the user's
+    # term through the defaults that transpose its derived element kernels
+    if not _compiler_works():
+        pytest.skip("torch.compile is not available here")
+    scene = _beam(VolumePreservation(1e5))
+    scene.add(es.NeoHookean(1e5, 0.3))
+    generator = torch.Generator().manual_seed(3)
+    noise = torch.randn(BATCH_LAST_MIN_BATCH, scene.num_vertices, 3, generator=generator, dtype=torch.float64)
+    x = scene.rest_positions[None] + 0.01 * noise
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, 0 * x, scene.free)
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass)
+    energy, gradient = objective.energy_and_gradient(x)
+    dense = objective.hessian(x).dense(x)
+    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    objective.compiled = True
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="torch.compile could not compile")
+        fast_energy, fast_gradient = objective.energy_and_gradient(x)
+        bands = objective.band_hessian(x, layout)
+    assert torch.allclose(fast_energy, energy, rtol=1e-12, atol=0)
+    assert torch.allclose(fast_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))
+    size, width = bands.shape[1], bands.shape[2]
+    read = torch.arange(size)[:, None] + torch.arange(width) < size  # the slots LAPACK reads
+    expected = dense.reshape(BATCH_LAST_MIN_BATCH, -1)[:, layout.band_entries]
+    assert torch.allclose(bands[:, read], expected[:, read], rtol=0, atol=1e-9 * float(dense.abs().max()))

@@ -144,8 +144,8 @@ class LaggedViscosity(ElementEnergy):
         self.shape_gradient = viscosity.shape_gradient
         self.shape_gradient_t = viscosity.shape_gradient_t
         self.start_gradient = start_gradient
-        # F_n batch innermost, `[d, d, m, B]`, for `batch_last_hessian_entries`: read strided from
-        # `start_gradient` the constant entries took longer than the neo-Hookean ones
+        # F_n batch innermost, `[d, d, m, B]`, for the batch-last kernels: read strided from
+        # `start_gradient`, the constant Hessian entries took longer than the neo-Hookean ones
         self.start_gradient_t = start_gradient.permute(2, 3, 1, 0).contiguous()
         # η V / h per element, a tensor: compiled evaluations then need no new graph for a new h
         step = torch.as_tensor(dt, dtype=start_gradient.dtype, device=start_gradient.device)

@@ -7,8 +7,9 @@ Written as scalar arithmetic, a compiled Hessian fuses each term's entries into 
 over the batch, and the scatter into `[storage, B]` moves rows of B contiguous numbers, where the
 element-major blocks (`ElementEnergy.element_hessian`, `[B, m, k·d, k·d]`) run 3- and 12-wide inner
 loops and scatter single numbers; only the stored triangle is computed. For a batch of worms this
-took the band Hessian to less than half the time (docs/energies.md). `tests/test_hessian_entries.py`
-checks every function against autograd's Hessian of the element energy.
+took the band Hessian to less than half the time (docs/energies.md).
+`tests/test_batch_last_entries.py` checks every function against autograd's Hessian of the element
+energy.
 
 The neo-Hookean entries use the structure of ∂²ψ/∂F² (`stable_neo_hookean_stress_hessian`): with
 the strain map S (F = Σ_b x_b ⊗ ∇N_b), Sᵀ(a I + c f fᵀ + λ' g gᵀ + w ∂²J/∂F²)S has the (b, c) vertex
