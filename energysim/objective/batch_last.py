@@ -1,13 +1,14 @@
-"""Leapfrog kicks and Hessians of many bodies at once, laid out batch-last, for
-`energysim.objective.compiled`.
+"""Leapfrog kicks, energies, gradients and Hessians of many bodies at once, laid out batch-last, for
+the compiled functions of `energysim.objective.compiled`.
 
 States are `[n·d, B]`, the batch innermost: gathers and scatters move rows of B contiguous numbers,
-and every element kernel (`ElementEnergy.batch_last_forces`,
-`DissipativeEnergy.batch_last_dissipation_gradient`, `ElementEnergy.batch_last_hessian_entries`)
-is scalar arithmetic that the compiler vectorises over the batch. These functions are compiled by
-`energysim.objective.compiled`, which drives them (`leapfrog`, and `hessian_entries` through
-`energysim.objective.compiled_hessian`); they compute `energysim.integrators.explicit.leapfrog`'s
-kicks and the step objective's Hessian in band storage.
+and every element kernel (`ElementEnergy.batch_last_forces`, `batch_last_energy_and_forces`,
+`batch_last_hessian_entries`, `DissipativeEnergy.batch_last_dissipation_gradient`) is scalar
+arithmetic that the compiler vectorises over the batch. `energysim.objective.compiled` drives the
+leapfrog kicks (`energysim.integrators.explicit.leapfrog`'s) and, through
+`energysim.objective.compiled_hessian`, the band Hessian of a batch; `energysim.objective.evaluation`
+takes the element terms' energy and gradient from here while it is compiled for a CPU batch
+(`evaluates_batch_last`).
 """
 
 from __future__ import annotations
