@@ -159,6 +159,57 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
+@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
+def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(batch: int):
+    # the inertia and the lagged viscosity (`has_constant_hessian`) are assembled at the first call
+    # and kept; later calls at other positions add the other terms to a copy: each result equals
+    # the eager Hessian at its own x, in band and in dense storage
+    _, objective, x = _worm_objective(batch=batch, viscosity=True)
+    assert {type(term).__name__ for term in objective.terms if term.has_constant_hessian} == {
+        "Inertia",
+        "LaggedViscosity",
+    }
+    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    generator = torch.Generator().manual_seed(1)
+    positions = [x, x + 2e-4 * torch.randn(x.shape, generator=generator, dtype=x.dtype), x]
+    expected = []
+    for y in positions:
+        expected.append(objective.hessian(y).dense(y))
+    objective.compiled = True
+    for y, dense in zip(positions, expected, strict=True):
+        tolerance = 1e-9 * float(dense.abs().max())
+        bands = objective.band_hessian(y, layout)
+        reference = _without_corner(dense.reshape(batch, -1)[:, layout.band_entries])
+        assert torch.allclose(_without_corner(bands), reference, rtol=0, atol=tolerance)
+        assert torch.allclose(objective.dense_hessian(y), dense, rtol=0, atol=tolerance)
+    assert sorted(key[0] for key in objective._constant_hessians) == ["band", "dense"]
+    # the factorisation may overwrite what it is given: the kept part is a copy's source, never returned
+    bands.zero_()
+    again = objective.band_hessian(x, layout)
+    reference = _without_corner(expected[0].reshape(batch, -1)[:, layout.band_entries])
+    tolerance = 1e-9 * float(expected[0].abs().max())
+    assert torch.allclose(_without_corner(again), reference, rtol=0, atol=tolerance)
+
+
+def test_the_terms_declared_constant_have_the_same_hessian_everywhere():
+    # `has_constant_hessian` is what lets the part be kept: checked by autograd at two distant states
+    _, objective, x = _worm_objective(batch=1, viscosity=True)
+    generator = torch.Generator().manual_seed(2)
+    other = x + 1e-2 * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+    for term in objective.terms:
+        if not term.has_constant_hessian:
+            continue
+
+        def energy(y: torch.Tensor, term=term) -> torch.Tensor:
+            return term(y.reshape(x.shape), objective.action).sum()
+
+        first = torch.autograd.functional.hessian(energy, x.reshape(-1))
+        second = torch.autograd.functional.hessian(energy, other.reshape(-1))
+        name, tolerance = type(term).__name__, 1e-9 * float(first.abs().max())
+        assert tolerance > 0, name
+        assert torch.allclose(first, second, rtol=0, atol=tolerance), name
+
+
 def _padded_levels(dense: torch.Tensor, layout) -> tuple[torch.Tensor, torch.Tensor]:
     # the level blocks read off dense matrices `[B, N, N]`: each DOF at its padded slot, identity
     # rows for the padding, then the diagonal and sub-diagonal S×S blocks

@@ -12,7 +12,7 @@ What else a term offers is declared once, by its class, never probed at run time
   blocks), `VertexDiagonalEnergy` (a constant per-vertex Hessian diagonal: the inertia),
   `StepLimitingEnergy` (a barrier that bounds how far a step may go: obstacles),
   `DissipativeEnergy` (no stored energy, a velocity-dependent force: viscosity);
-- its kernels and hooks, by class flags: `is_linear`, `has_gradient_kernel`,
+- its kernels and hooks, by class flags: `is_linear`, `has_constant_hessian`, `has_gradient_kernel`,
   `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `is_actuated`.
 
 The solvers, the compiled evaluations and the integrators ask only these (`isinstance` or the
@@ -35,6 +35,9 @@ class EnergyTerm(nn.Module):
 
     Class flags (capabilities, declared by the subclass):
         is_linear: the energy is linear in `x`, so its Hessian is zero.
+        has_constant_hessian: the energy is quadratic in `x`: its Hessian depends on neither `x` nor
+            the action, and a compiled objective assembles it once and adds it to every later
+            Hessian (`energysim.objective.compiled_hessian`).
         has_gradient_kernel: `value_and_gradient` gives E and ∇E in closed form (never None); the
             compiled evaluations call only terms that declare it.
         has_lagged_terms: `lagged_terms` may add terms to a step (friction, viscosity).
@@ -42,6 +45,7 @@ class EnergyTerm(nn.Module):
     """
 
     is_linear: bool = False
+    has_constant_hessian: bool = False
     has_gradient_kernel: bool = False
     has_lagged_terms: bool = False
     is_actuated: bool = False
@@ -108,6 +112,8 @@ class VertexDiagonalEnergy(EnergyTerm):
     """A term whose Hessian is a constant diagonal, the same for the d coordinates of a vertex
     (the implicit-Euler inertia): solvers add it to the assembled diagonal, L-BFGS starts from its
     inverse. Subclasses implement `hessian_diagonal`."""
+
+    has_constant_hessian = True
 
     def hessian_diagonal(self) -> Tensor:  # pragma: no cover - abstract
         """The Hessian's diagonal per vertex, shape `[n]`, in N/m."""

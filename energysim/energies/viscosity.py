@@ -134,6 +134,7 @@ class LaggedViscosity(ElementEnergy):
         dt: the step h in s.
     """
 
+    has_constant_hessian = True
     has_gradient_kernel = True
     has_hessian_kernel = True
 

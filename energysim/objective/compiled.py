@@ -115,13 +115,15 @@ def _hessian_entries(
     groups: tuple[tuple[tuple[int, ...], Tensor], ...],
     diagonal_positions: Tensor,
     length: int,
+    start: Tensor | None = None,
 ) -> Tensor:
     # every term's Hessian entries summed into one flat storage per batch entry (a dense matrix, or
-    # band storage): per-vertex diagonals at `diagonal_positions`; element blocks by group (terms
-    # sharing their elements, summed before one scatter) at the group's positions, where the last
-    # slot takes the entries the storage drops
+    # band storage), `[B, length + 1]`, added to a copy of `start` (same shape) where given:
+    # per-vertex diagonals at `diagonal_positions`; element blocks by group (terms sharing their
+    # elements, summed before one scatter) at the group's positions, where the last slot takes the
+    # entries the storage drops
     batch = x.shape[0]
-    flat = x.new_zeros(batch, length + 1)
+    flat = x.new_zeros(batch, length + 1) if start is None else start.clone()
     diagonal = batch_last.vertex_diagonal(terms, x)
     if diagonal is not None:
         flat[:, diagonal_positions] += diagonal
@@ -131,7 +133,18 @@ def _hessian_entries(
         for member in members[1:]:
             blocks = blocks + terms[member].element_hessian(element_positions, action)
         flat.index_add_(1, positions, blocks.reshape(batch, -1))
-    return flat[:, :length]
+    return flat
+
+
+# The Hessian of the terms whose Hessian is constant (`has_constant_hessian`), once per objective:
+# functions of their own, so that their graphs do not count against the per-function graph limit
+# of the functions called every Newton iteration
+def _constant_hessian_entries(*args: object) -> Tensor:
+    return _hessian_entries(*args)
+
+
+def _constant_hessian_entries_batch_last(*args: object) -> Tensor:
+    return batch_last.hessian_entries_batch_last(*args, None, False)
 
 
 _SOURCES: dict[str, Callable] = {
@@ -140,6 +153,8 @@ _SOURCES: dict[str, Callable] = {
     "term_energies": evaluation.term_energies,
     "hessian_entries": _hessian_entries,
     "hessian_entries_batch_last": batch_last.hessian_entries_batch_last,
+    "constant_hessian_entries": _constant_hessian_entries,
+    "constant_hessian_entries_batch_last": _constant_hessian_entries_batch_last,
     "trial": evaluation.trial,
     "cut_back": evaluation.cut_back,
     "leapfrog": _leapfrog,
@@ -163,10 +178,18 @@ _SOURCES: dict[str, Callable] = {
 # after 20 minutes.
 _REALIZE: dict[str, object] = {"realize_opcount_threshold": 4}
 _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
-    "cpu": {"hessian_entries": _REALIZE},
+    "cpu": {"hessian_entries": _REALIZE, "constant_hessian_entries": _REALIZE},
     "cuda": {
         name: _REALIZE
-        for name in ("energy", "energy_and_gradient", "term_energies", "hessian_entries", "trial", "cut_back")
+        for name in (
+            "energy",
+            "energy_and_gradient",
+            "term_energies",
+            "hessian_entries",
+            "constant_hessian_entries",
+            "trial",
+            "cut_back",
+        )
     },
 }
 _COMPILED: dict[tuple[str, str], Callable] = {}

@@ -4,6 +4,11 @@ straight into the storage a direct solve factorises: dense `[B, N, N]` matrices,
 (`energysim.linalg.level_storage`, a batch's solve on a GPU), fixed DOFs eliminated, with no CSR
 matrix in between. One compiled function computes the entries for all three; only where each entry
 lands differs.
+
+The terms whose Hessian does not depend on x (`EnergyTerm.has_constant_hessian`: the inertia, the
+lagged viscosity) are assembled once per objective, into a storage kept in the `constant` cache the
+objective passes; every later call starts from a copy of it and adds the other terms' entries. For 64
+worms that took a band Hessian from 16.5 to 10.4 ms (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -37,21 +42,58 @@ from energysim.objective.derivatives import element_groups
 __all__ = ["band_hessian", "dense_hessian", "level_hessian"]
 
 
+# storage → positions of an element group's entries in it
+Positions = Callable[[Tensor], Tensor]
+
+
+def _entries(
+    name: str,
+    terms: Sequence[EnergyTerm],
+    action: Tensor | None,
+    x: Tensor,
+    positions: Positions,
+    diagonal: Tensor,
+    length: int,
+    constant: dict[object, Tensor] | None,
+    key: object,
+) -> Tensor | None:
+    """Every term's Hessian entries by the compiled function `name`, as it returns them (element-major
+    `[B, length + 1]`, the last slot taking what the storage drops; batch-last `[B, length]`): each
+    group's element blocks at `positions(element_vertices)`, per-vertex diagonals at `diagonal`.
+    With a `constant` cache, the constant terms' part is computed once under `key` (by
+    `constant_<name>`, as the whole storage) and the others' entries are added to a copy of it; None
+    where compiling failed."""
+
+    def groups(of: tuple[EnergyTerm, ...]) -> tuple[tuple[tuple[int, ...], Tensor], ...]:
+        return tuple((members, positions(of[members[0]].element_vertices)) for members in element_groups(of))
+
+    fixed = tuple(term for term in terms if term.has_constant_hessian and not term.is_linear)
+    if constant is None or not fixed:
+        return call(name, tuple(terms), action, x, groups(tuple(terms)), diagonal, length)
+    start = constant.get(key)
+    if start is None:
+        start = call(f"constant_{name}", fixed, action, x, groups(fixed), diagonal, length)
+        if start is None:
+            return None
+        constant[key] = start
+    # (no varying terms: the call copies the start into the returned storage)
+    varying = tuple(term for term in terms if not term.has_constant_hessian and not term.is_linear)
+    return call(name, varying, action, x, groups(varying), diagonal, length, start)
+
+
 def _hessian_in_storage(
     terms: Sequence[EnergyTerm],
     action: Tensor | None,
     x: Tensor,
-    positions: Callable[[Tensor], Tensor],
+    positions: Positions,
     diagonal: Tensor,
     length: int,
+    constant: dict[object, Tensor] | None,
+    key: object,
 ) -> Tensor | None:
-    """Every term's Hessian entries in one flat storage of `length` entries per batch entry, `[B,
-    length]`, by the compiled function: each group's element blocks at `positions(element_vertices)`
-    (the extra slot `length` takes what the storage drops), per-vertex diagonals at `diagonal`."""
-    groups = tuple(
-        (members, positions(terms[members[0]].element_vertices)) for members in element_groups(terms)
-    )
-    return call("hessian_entries", tuple(terms), action, x, groups, diagonal, length)
+    """`_entries` in the element-major storage, `[B, length]`."""
+    flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
+    return None if flat is None else flat[:, :length]
 
 
 def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
@@ -62,10 +104,15 @@ def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
 
 
 def dense_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor
+    terms: Sequence[EnergyTerm],
+    action: Tensor | None,
+    free: Tensor,
+    x: Tensor,
+    constant: dict[object, Tensor] | None = None,
 ) -> Tensor | None:
     """∇²E(x) as dense `[B, n·d, n·d]` matrices, fixed DOFs eliminated (identity rows and columns),
-    by the compiled function, or None."""
+    by the compiled function, or None. `constant`: the objective's cache of its constant terms'
+    part (see the module's docstring), or None to assemble every term each call."""
     batch, n, dim = x.shape
     size = n * dim
 
@@ -74,7 +121,8 @@ def dense_hessian(
         return (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)
 
     diagonal = torch.arange(size, device=x.device) * (size + 1)
-    flat = _hessian_in_storage(terms, action, x, positions, diagonal, size * size)
+    key = ("dense", x.shape, x.dtype, x.device)
+    flat = _hessian_in_storage(terms, action, x, positions, diagonal, size * size, constant, key)
     if flat is None:
         return None
     dense = flat.reshape(batch, size, size)
@@ -87,23 +135,27 @@ def dense_hessian(
 
 
 def band_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
+    terms: Sequence[EnergyTerm],
+    action: Tensor | None,
+    free: Tensor,
+    x: Tensor,
+    layout: LevelLayout,
+    constant: dict[object, Tensor] | None = None,
 ) -> Tensor | None:
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
-    eliminated, by the compiled function, or None."""
+    eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`."""
     batch, n, dim = x.shape
     diagonal = band_diagonal_positions(layout)
+    length = band_length(layout)
+    key = ("band", id(layout), x.shape, x.dtype, x.device)
     if batch >= BATCH_LAST_MIN_BATCH:
         # batch-last: every element kernel one loop vectorised over the batch, half the entries
-        groups = tuple(
-            (members, band_upper_positions(layout, terms[members[0]].element_vertices, dim))
-            for members in element_groups(terms)
-        )
-        length = band_length(layout)
-        flat = call("hessian_entries_batch_last", tuple(terms), action, x, groups, diagonal, length)
+        positions = functools.partial(band_upper_positions, layout, dim=dim)
+        name = "hessian_entries_batch_last"
+        flat = _entries(name, terms, action, x, positions, diagonal, length, constant, key)
     else:
         positions = functools.partial(band_positions, layout, dim=dim)
-        flat = _hessian_in_storage(terms, action, x, positions, diagonal, band_length(layout))
+        flat = _hessian_in_storage(terms, action, x, positions, diagonal, length, constant, key)
     if flat is None:
         return None
     bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
@@ -112,15 +164,23 @@ def band_hessian(
 
 
 def level_hessian(
-    terms: Sequence[EnergyTerm], action: Tensor | None, free: Tensor, x: Tensor, layout: LevelLayout
+    terms: Sequence[EnergyTerm],
+    action: Tensor | None,
+    free: Tensor,
+    x: Tensor,
+    layout: LevelLayout,
+    constant: dict[object, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor] | None:
     """∇²E(x) as `layout`'s level blocks (`energysim.linalg.level_storage`): the diagonal blocks
     `[B, L, S, S]` and the sub-diagonal ones `[B, L−1, S, S]`, padding and fixed DOFs given identity
-    rows, by the compiled function, or None."""
+    rows, by the compiled function, or None. `constant`: as for `dense_hessian`."""
     batch, _, dim = x.shape
     positions = functools.partial(level_positions, layout, dim=dim)
     diagonal = level_diagonal_positions(layout)
-    flat = _hessian_in_storage(terms, action, x, positions, diagonal, level_length(layout))
+    key = ("levels", id(layout), x.shape, x.dtype, x.device)
+    flat = _hessian_in_storage(
+        terms, action, x, positions, diagonal, level_length(layout), constant, key
+    )
     if flat is None:
         return None
     flat = flat + padding_identity(layout, x.dtype)

@@ -69,6 +69,8 @@ class Objective:
     compiled: bool = False
 
     _closed_forms: dict[bool, bool] = field(default_factory=dict, init=False, repr=False)
+    # the Hessian part of the terms with a constant Hessian, per storage (`compiled_hessian`)
+    _constant_hessians: dict[object, Tensor] = field(default_factory=dict, init=False, repr=False)
 
     def _compiles(self, *, hessian: bool = False) -> bool:
         if not self.compiled:
@@ -184,14 +186,18 @@ class Objective:
         None unless `compiled` and every term has closed-form blocks (then use `hessian`)."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_hessian.dense_hessian(self.terms, self.action, self.free, x)
+        return compiled_hessian.dense_hessian(
+            self.terms, self.action, self.free, x, self._constant_hessians
+        )
 
     def band_hessian(self, x: Tensor, layout: LevelLayout) -> Tensor | None:
         """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.linalg.banded`) by the compiled
         function, fixed DOFs eliminated; None as for `dense_hessian`."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_hessian.band_hessian(self.terms, self.action, self.free, x, layout)
+        return compiled_hessian.band_hessian(
+            self.terms, self.action, self.free, x, layout, self._constant_hessians
+        )
 
     def level_hessian(self, x: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor] | None:
         """∇²E(x) as `layout`'s diagonal `[B, L, S, S]` and sub-diagonal `[B, L−1, S, S]` level blocks
@@ -199,7 +205,9 @@ class Objective:
         as for `dense_hessian`."""
         if not self._compiles(hessian=True):
             return None
-        return compiled_hessian.level_hessian(self.terms, self.action, self.free, x, layout)
+        return compiled_hessian.level_hessian(
+            self.terms, self.action, self.free, x, layout, self._constant_hessians
+        )
 
     def hessian(
         self, x: Tensor, *, use_element_blocks: bool = True, project: bool = False
