@@ -341,3 +341,45 @@ def test_a_compiled_batch_evaluates_the_user_density_batch_last_as_eagerly():
     read = torch.arange(size)[:, None] + torch.arange(width) < size  # the slots LAPACK reads
     expected = dense.reshape(BATCH_LAST_MIN_BATCH, -1)[:, layout.band_entries]
     assert torch.allclose(bands[:, read], expected[:, read], rtol=0, atol=1e-9 * float(dense.abs().max()))
+
+
+class QuadraticStrain(es.DensityEnergy):
+    """ψ = k ‖F − I‖², quadratic in F: its Hessian never changes, which it declares."""
+
+    has_constant_hessian = True
+
+    def __init__(self, stiffness: float = 1e5) -> None:
+        super().__init__()
+        self.register_buffer("stiffness", torch.as_tensor(stiffness, dtype=torch.float64))
+
+    def density(self, F: torch.Tensor) -> torch.Tensor:
+        identity = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
+        return self.stiffness * (F - identity).square().sum(dim=(-1, -2))
+
+
+def test_a_user_density_declared_constant_is_assembled_once_and_still_exact():
+    # a compiled batch keeps the declared term's part from the first Hessian; the later Hessians,
+    # at other positions, equal the eager ones there (static shapes, as in the test above)
+    if not _compiler_works():
+        pytest.skip("torch.compile is not available here")
+    scene = _beam(QuadraticStrain())
+    scene.add(es.NeoHookean(1e5, 0.3))
+    generator = torch.Generator().manual_seed(4)
+    shape = (BATCH_LAST_MIN_BATCH, scene.num_vertices, 3)
+    start = scene.rest_positions[None] + 0.01 * torch.randn(shape, generator=generator, dtype=torch.float64)
+    positions = [start, start + 0.01 * torch.randn(shape, generator=generator, dtype=torch.float64)]
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, start, 0 * start, scene.free)
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass)
+    expected = [objective.hessian(x).dense(x) for x in positions]
+    layout = es.NewtonCG()._layout(objective.element_groups(), positions[0])
+    objective.compiled = True
+    with warnings.catch_warnings(), torch._dynamo.config.patch(automatic_dynamic_shapes=False):
+        warnings.filterwarnings("error", message="torch.compile could not compile")
+        computed = [objective.band_hessian(x, layout) for x in positions]
+    assert len(objective._constant_hessians) == 1
+    size, width = computed[0].shape[1], computed[0].shape[2]
+    read = torch.arange(size)[:, None] + torch.arange(width) < size  # the slots LAPACK reads
+    for bands, dense in zip(computed, expected, strict=True):
+        reference = dense.reshape(BATCH_LAST_MIN_BATCH, -1)[:, layout.band_entries]
+        tolerance = 1e-9 * float(dense.abs().max())
+        assert torch.allclose(bands[:, read], reference[:, read], rtol=0, atol=tolerance)
