@@ -8,7 +8,7 @@ lands differs.
 The terms whose Hessian does not depend on x (`EnergyTerm.has_constant_hessian`: the inertia, the
 lagged viscosity) are assembled once per objective, into a storage kept in the `constant` cache the
 objective passes; every later call starts from a copy of it and adds the other terms' entries. For 64
-worms that took a band Hessian from 16.5 to 10.4 ms (docs/benchmarks.md).
+worms that took a band Hessian from 14.8 to 12.4 ms a call (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -81,21 +81,6 @@ def _entries(
     return call(name, varying, action, x, groups(varying), diagonal, length, start)
 
 
-def _hessian_in_storage(
-    terms: Sequence[EnergyTerm],
-    action: Tensor | None,
-    x: Tensor,
-    positions: Positions,
-    diagonal: Tensor,
-    length: int,
-    constant: dict[object, Tensor] | None,
-    key: object,
-) -> Tensor | None:
-    """`_entries` in the element-major storage, `[B, length]`."""
-    flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
-    return None if flat is None else flat[:, :length]
-
-
 def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
     # the fixed DOFs `[n·d]` (DOF = vertex·d + axis) of the per-vertex `free` `[n]`; None if none is
     if bool(free.all()):
@@ -122,10 +107,10 @@ def dense_hessian(
 
     diagonal = torch.arange(size, device=x.device) * (size + 1)
     key = ("dense", x.shape, x.dtype, x.device)
-    flat = _hessian_in_storage(terms, action, x, positions, diagonal, size * size, constant, key)
+    flat = _entries("hessian_entries", terms, action, x, positions, diagonal, size * size, constant, key)
     if flat is None:
         return None
-    dense = flat.reshape(batch, size, size)
+    dense = flat[:, : size * size].reshape(batch, size, size)
     fixed = _fixed_dofs(free, dim)
     if fixed is not None:
         # fixed DOFs get the rows and columns of the identity, as in `energysim.linalg.assembly.assemble`
@@ -155,7 +140,8 @@ def band_hessian(
         flat = _entries(name, terms, action, x, positions, diagonal, length, constant, key)
     else:
         positions = functools.partial(band_positions, layout, dim=dim)
-        flat = _hessian_in_storage(terms, action, x, positions, diagonal, length, constant, key)
+        flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
+        flat = None if flat is None else flat[:, :length]
     if flat is None:
         return None
     bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
@@ -178,12 +164,11 @@ def level_hessian(
     positions = functools.partial(level_positions, layout, dim=dim)
     diagonal = level_diagonal_positions(layout)
     key = ("levels", id(layout), x.shape, x.dtype, x.device)
-    flat = _hessian_in_storage(
-        terms, action, x, positions, diagonal, level_length(layout), constant, key
-    )
+    length = level_length(layout)
+    flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
     if flat is None:
         return None
-    flat = flat + padding_identity(layout, x.dtype)
+    flat = flat[:, :length] + padding_identity(layout, x.dtype)
     fixed = _fixed_dofs(free, dim)
     if fixed is not None:
         flat = eliminate_fixed_in_levels(flat, layout, fixed)
