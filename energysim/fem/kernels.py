@@ -296,12 +296,23 @@ def viscous_stress_entries(
     F: list[list[Tensor]], rate: list[list[Tensor]], viscosity: Tensor
 ) -> list[list[Tensor]]:
     """`viscous_stress` with F, Ḟ and the result given entry by entry (`[i][j]`, one shape each)."""
+    return _times_entries(F, _strain_rate_entries(F, rate), 2.0 * viscosity)
+
+
+def _strain_rate_entries(F: list[list[Tensor]], rate: list[list[Tensor]]) -> list[list[Tensor]]:
+    # sym(Fᵀ Ḟ) entry by entry
     dim = len(F)
     product = [[sum(F[k][a] * rate[k][c] for k in range(dim)) for c in range(dim)] for a in range(dim)]
-    rate_of_strain = [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
+    return [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
+
+
+def _times_entries(
+    F: list[list[Tensor]], strain: list[list[Tensor]], factor: Tensor | float
+) -> list[list[Tensor]]:
+    # factor · F S entry by entry
+    dim = len(F)
     return [
-        [2.0 * viscosity * sum(F[i][a] * rate_of_strain[a][j] for a in range(dim)) for j in range(dim)]
-        for i in range(dim)
+        [factor * sum(F[i][a] * strain[a][j] for a in range(dim)) for j in range(dim)] for i in range(dim)
     ]
 
 
@@ -313,16 +324,9 @@ def lagged_viscosity_energy_and_stress_entries(
     F_n as `[i][j]` of one shape, w broadcastable to it."""
     dim = len(F)
     change = [[F[i][j] - start_gradient[i][j] for j in range(dim)] for i in range(dim)]
-    product = [
-        [sum(start_gradient[k][a] * change[k][c] for k in range(dim)) for c in range(dim)] for a in range(dim)
-    ]
-    strain = [[0.5 * (product[a][c] + product[c][a]) for c in range(dim)] for a in range(dim)]
+    strain = _strain_rate_entries(start_gradient, change)
     energy = weight * sum(strain[a][c] * strain[a][c] for a in range(dim) for c in range(dim))
-    stress = [
-        [2.0 * sum(start_gradient[i][a] * strain[a][j] for a in range(dim)) for j in range(dim)]
-        for i in range(dim)
-    ]
-    return energy, stress
+    return energy, _times_entries(start_gradient, strain, 2.0)
 
 
 def lagged_viscosity_hessian_blocks(start_gradient: Tensor, shape_gradient: Tensor, weight: Tensor) -> Tensor:

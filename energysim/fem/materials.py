@@ -42,12 +42,18 @@ def lame_parameters(youngs_modulus: Tensor, poissons_ratio: Tensor) -> tuple[Ten
 def determinant_of(F: Tensor) -> Tensor:
     # Written out because torch.linalg.det on tiny matrices goes through an LU factorisation,
     # which is several times slower and has a less stable second derivative at J = 0.
-    if F.shape[-1] == 2:
-        return F[..., 0, 0] * F[..., 1, 1] - F[..., 0, 1] * F[..., 1, 0]
+    dim = F.shape[-1]
+    return _determinant_entries([[F[..., i, j] for j in range(dim)] for i in range(dim)])
+
+
+def _determinant_entries(F: list[list[Tensor]]) -> Tensor:
+    # det F with F given entry by entry (`F[i][j]`)
+    if len(F) == 2:
+        return F[0][0] * F[1][1] - F[0][1] * F[1][0]
     return (
-        F[..., 0, 0] * (F[..., 1, 1] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 1])
-        - F[..., 0, 1] * (F[..., 1, 0] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 0])
-        + F[..., 0, 2] * (F[..., 1, 0] * F[..., 2, 1] - F[..., 1, 1] * F[..., 2, 0])
+        F[0][0] * (F[1][1] * F[2][2] - F[1][2] * F[2][1])
+        - F[0][1] * (F[1][0] * F[2][2] - F[1][2] * F[2][0])
+        + F[0][2] * (F[1][0] * F[2][1] - F[1][1] * F[2][0])
     )
 
 
@@ -84,14 +90,10 @@ def invariant_excess_entries(F: list[list[Tensor]]) -> tuple[Tensor, Tensor, Ten
     G = [[F[i][j] - 1.0 if i == j else F[i][j] for j in range(dim)] for i in range(dim)]
     trace = sum(G[i][i] for i in range(dim))
     squares = 0.5 * sum(G[i][j] * G[i][j] for i in range(dim) for j in range(dim))
+    determinant = _determinant_entries(G)
     if dim == 2:
-        higher = G[0][0] * G[1][1] - G[0][1] * G[1][0]
+        higher = determinant
     else:
-        determinant = (
-            G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1])
-            - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0])
-            + G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0])
-        )
         crossed = sum(G[i][j] * G[j][i] for i in range(3) for j in range(3))
         higher = 0.5 * (trace * trace - crossed) + determinant
     return 2.0 * (trace + squares), trace + higher, squares - higher
