@@ -13,6 +13,7 @@ and there is no CUDA one: this path is for small batches on the CPU (`prefer_ban
 
 from __future__ import annotations
 
+import ctypes
 import functools
 from collections.abc import Callable, Sequence
 
@@ -21,6 +22,7 @@ import torch
 from torch import Tensor
 
 from energysim.fem.hessian_entries import upper_entries
+from energysim.linalg import native
 from energysim.linalg.assembly import dof_indices
 from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.linalg.caching import IdentityCache
@@ -33,6 +35,10 @@ BandFactor = np.ndarray
 BAND_MARGIN = 6
 # Entries of a batch are factorised one LAPACK call each; past a few, the batched level solve wins.
 BAND_MAX_BATCH = 4
+# From two systems on, the C kernel's four-lane tiles beat LAPACK's one call per matrix (see
+# `solve_bands_in_tiles`); a single system is faster alone.
+TILE_MIN_BATCH = 2
+TILE = 4
 
 
 def prefer_band(
@@ -60,9 +66,52 @@ def band_cholesky_solve(dense: Tensor, rhs: Tensor, layout: LevelLayout) -> tupl
 
 def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor]:
     """`band_cholesky_solve` from the matrices already in the layout's band storage, `bands`
-    `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` is
-    overwritten by the factors."""
+    `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` may
+    be overwritten by the factors.
+
+    Batches of float64 systems take the C kernel that factorises four at once (`solve_bands_in_tiles`)
+    where it is built; the rest, LAPACK one matrix at a time."""
+    if bands.dtype == torch.float64 and bands.shape[0] >= TILE_MIN_BATCH and bands.device.type == "cpu":
+        kernels = native.library()
+        if kernels is not None:
+            return solve_bands_in_tiles(bands, rhs, layout, kernels)
     return substitute_bands(factorise_bands(bands), rhs, layout)
+
+
+def solve_bands_in_tiles(
+    bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL
+) -> tuple[Tensor, Tensor]:
+    """`solve_bands` by the C kernels of `energysim.linalg.native` (float64, CPU): the systems are
+    interleaved four to a tile (`band_tiles.c`; a short last tile is filled with identities), each
+    SIMD operation serving four of them. `bands` is left unchanged."""
+    batch, size, width = bands.shape
+    tiles = -(-batch // TILE)
+    packed = torch.empty(tiles, size, width, TILE, dtype=bands.dtype)
+    _interleave(packed.permute(0, 3, 1, 2), bands, padding=1.0)
+    values = torch.empty(tiles, size, TILE, dtype=bands.dtype)
+    _interleave(values.permute(0, 2, 1)[..., None], rhs[:, layout.band_order, None], padding=0.0)
+    positive_definite = torch.ones(tiles * TILE, dtype=torch.uint8)
+    kernels.band_cholesky_tiles(packed.data_ptr(), tiles, size, width, positive_definite.data_ptr())
+    kernels.band_substitute_tiles(packed.data_ptr(), values.data_ptr(), tiles, size, width)
+    solved = positive_definite[:batch].bool()
+    in_order = values.permute(0, 2, 1).reshape(tiles * TILE, size)[:batch]
+    solution = torch.zeros_like(rhs)
+    # a lane that failed holds whatever its unit pivots made of it: zero, as LAPACK's path leaves it
+    solution[:, layout.band_order] = torch.where(solved[:, None], in_order, 0.0)
+    return solution, solved
+
+
+def _interleave(lanes: Tensor, matrices: Tensor, padding: float) -> None:
+    # write `matrices` `[B, N, w]` into tile lanes `[tiles, 4, N, w]` (a view of the interleaved
+    # storage); lanes past B get `padding` on column 0 (the diagonal) and zeros elsewhere
+    batch = matrices.shape[0]
+    full = batch // TILE
+    lanes[:full].copy_(matrices[: full * TILE].reshape(full, TILE, *matrices.shape[1:]))
+    rest = batch - full * TILE
+    if rest:
+        lanes[full, :rest].copy_(matrices[full * TILE :])
+        lanes[full, rest:].zero_()
+        lanes[full, rest:, :, 0] = padding
 
 
 def factorise_bands(bands: Tensor) -> list[BandFactor | None]:

@@ -225,14 +225,13 @@ def hessian_entries_batch_last(
     diagonal_positions: Tensor,
     length: int,
     start: Tensor | None = None,
-    batch_first: bool = True,
 ) -> Tensor:
     # `energysim.objective.compiled`'s `_hessian_entries` for a storage that keeps one triangle
     # (band storage), batch-last: each group's summed upper entries (`batch_last_hessian_entries`,
     # `[P, m, B]`) land at the group's positions (`band_upper_positions`) of a `[length + 1, B]`
     # storage (a copy of `start` where given), the per-vertex diagonals at `diagonal_positions`;
-    # returned as `[B, length]` (`batch_first`, the transposition compiled with the rest: eagerly it
-    # cost another 1.3 ms a call for 64 worms) or as the whole storage
+    # returned whole and batch-last: the band solve reads it through a transposed view (the C
+    # kernels' four-lane tiles gather straight from it; LAPACK's path makes the copy it needs)
     batch, n, dim = x.shape
     states = x.reshape(batch, n * dim).T
     action_t = None if action is None else action.T
@@ -247,4 +246,4 @@ def hessian_entries_batch_last(
             more = terms[member].batch_last_hessian_entries(corners, action_t)
             entries = [first + second for first, second in zip(entries, more, strict=True)]
         flat.index_add_(0, positions, torch.stack(entries).reshape(-1, batch))
-    return flat[:length].T.contiguous() if batch_first else flat
+    return flat

@@ -144,7 +144,7 @@ def _constant_hessian_entries(*args: object) -> Tensor:
 
 
 def _constant_hessian_entries_batch_last(*args: object) -> Tensor:
-    return batch_last.hessian_entries_batch_last(*args, None, False)
+    return batch_last.hessian_entries_batch_last(*args)
 
 
 _SOURCES: dict[str, Callable] = {

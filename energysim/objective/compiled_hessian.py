@@ -58,7 +58,7 @@ def _entries(
     key: object,
 ) -> Tensor | None:
     """Every term's Hessian entries by the compiled function `name`, as it returns them (element-major
-    `[B, length + 1]`, the last slot taking what the storage drops; batch-last `[B, length]`): each
+    `[B, length + 1]`, batch-last `[length + 1, B]`, the last slot taking what the storage drops): each
     group's element blocks at `positions(element_vertices)`, per-vertex diagonals at `diagonal`.
     With a `constant` cache, the constant terms' part is computed once under `key` (by
     `constant_<name>`, as the whole storage) and the others' entries are added to a copy of it; None
@@ -128,7 +128,8 @@ def band_hessian(
     constant: dict[object, Tensor] | None = None,
 ) -> Tensor | None:
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
-    eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`."""
+    eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`. From
+    `BATCH_LAST_MIN_BATCH` entries on it is a transposed view of batch-last memory."""
     batch, n, dim = x.shape
     diagonal = band_diagonal_positions(layout)
     length = band_length(layout)
@@ -138,6 +139,7 @@ def band_hessian(
         positions = functools.partial(band_upper_positions, layout, dim=dim)
         name = "hessian_entries_batch_last"
         flat = _entries(name, terms, action, x, positions, diagonal, length, constant, key)
+        flat = None if flat is None else flat[:length].T
     else:
         positions = functools.partial(band_positions, layout, dim=dim)
         flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)

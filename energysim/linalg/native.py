@@ -1,0 +1,115 @@
+"""The package's C kernels, compiled on first use by the system C compiler and loaded with ctypes.
+
+Only what neither torch nor LAPACK offers lives here: a band Cholesky of many small systems at once
+(`band_tiles.c`; LAPACK's `?pbtrf` takes one matrix per call). Every kernel has a pure
+torch/scipy path beside it that gives the same result, so a machine without a compiler loses speed,
+not function: `library()` returns None there, and callers take the other path.
+
+The shared object is built once per source, compiler and flags into a cache folder
+(`$ENERGYSIM_CACHE_DIR`, else `$XDG_CACHE_HOME/energysim`, else `~/.cache/energysim`), written under
+a temporary name and renamed into place, so processes that build it at once never load half a file.
+`ENERGYSIM_NATIVE=0` turns the kernels off (the tests use it to check both paths agree).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from importlib import resources
+from pathlib import Path
+
+import torch
+
+SOURCE = "band_tiles.c"
+# a build that takes longer is abandoned and the fallback path taken (it takes ~0.3 s)
+BUILD_TIMEOUT_S = 120.0
+
+
+def enabled() -> bool:
+    """Whether the kernels may be used: `ENERGYSIM_NATIVE` is not "0"."""
+    return os.environ.get("ENERGYSIM_NATIVE", "1") != "0"
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernels, built first where the cache lacks them; None where they are turned off or
+    no C compiler built them (a warning names why, once)."""
+    return _load() if enabled() else None
+
+
+def cache_dir() -> Path:
+    """Where built kernels are kept."""
+    chosen = os.environ.get("ENERGYSIM_CACHE_DIR")
+    if chosen:
+        return Path(chosen)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "energysim"
+
+
+def compiler() -> str | None:
+    """The C compiler: `$CC`, else `cc`, `gcc` or `clang` on the PATH; None without one."""
+    named = os.environ.get("CC")
+    if named:
+        return shutil.which(named)
+    return next((path for name in ("cc", "gcc", "clang") if (path := shutil.which(name))), None)
+
+
+def architecture_flags() -> list[str]:
+    """Instruction-set flags for this CPU: AVX2 and FMA where torch found them (4 doubles per
+    vector), otherwise the compiler's baseline (SSE2 on x86-64, NEON on arm64), which stays correct
+    on any machine the cache is shared with."""
+    capability = torch.backends.cpu.get_cpu_capability()
+    return ["-mavx2", "-mfma"] if capability in ("AVX2", "AVX512") else []
+
+
+@functools.cache
+def _load() -> ctypes.CDLL | None:
+    try:
+        path = _build()
+    except (OSError, subprocess.SubprocessError, RuntimeError) as error:
+        warnings.warn(
+            f"energysim: the C band kernels could not be built ({error}); the band solves take "
+            "LAPACK's one-matrix routines instead (slower for batches, same results)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return None
+    return _declare(ctypes.CDLL(str(path)))
+
+
+def _build() -> Path:
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler (cc, gcc or clang) on the PATH; set CC to name one")
+    source = resources.files("energysim.linalg").joinpath(SOURCE).read_text(encoding="utf-8")
+    flags = ["-O3", "-std=c99", "-fPIC", "-shared", *architecture_flags()]
+    key = hashlib.sha256("\0".join([source, cc, *flags, platform.machine()]).encode()).hexdigest()[:16]
+    target = cache_dir() / f"band_tiles-{key}.so"
+    if target.exists():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent) as scratch:
+        source_path = Path(scratch) / SOURCE
+        source_path.write_text(source, encoding="utf-8")
+        built = Path(scratch) / target.name
+        command = [cc, *flags, str(source_path), "-o", str(built), "-lm"]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+        if result.returncode != 0:
+            raise RuntimeError(f"{' '.join(command)} failed: {result.stderr.strip()[-500:]}")
+        os.replace(built, target)
+    return target
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    pointer, size = ctypes.c_void_p, ctypes.c_long
+    lib.band_cholesky_tiles.argtypes = [pointer, size, size, size, pointer]
+    lib.band_cholesky_tiles.restype = None
+    lib.band_substitute_tiles.argtypes = [pointer, pointer, size, size, size]
+    lib.band_substitute_tiles.restype = None
+    return lib

@@ -1,0 +1,110 @@
+"""The C kernel that factorises band systems four at a time (`energysim/linalg/band_tiles.c`),
+checked against dense float64 algebra on the worm's own Newton matrices, and its build: cached,
+replaced whole, and a clear fallback where no compiler builds it."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+import torch
+from test_block_tridiagonal import _objective, _worm_batch
+
+from energysim.linalg import banded, native
+
+needs_compiler = pytest.mark.skipif(native.compiler() is None, reason="no C compiler on this machine")
+RTOL = 1e-10
+
+
+@pytest.fixture
+def fresh_build(monkeypatch: pytest.MonkeyPatch, tmp_path) -> Iterator[None]:
+    """Kernels built anew into `tmp_path`; the process's loaded kernels restored afterwards."""
+    monkeypatch.setenv("ENERGYSIM_CACHE_DIR", str(tmp_path))
+    native._load.cache_clear()
+    yield
+    native._load.cache_clear()
+
+
+def _worm_systems(noise: list[float]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The worm's step Hessians at perturbed states (dense `[B, N, N]`), their band storage
+    `[B, N, u + 1]`, and the layout."""
+    scene, state, action = _worm_batch(noise, fix=True)
+    objective, x = _objective(scene, state, action)
+    operator = objective.hessian(x)
+    dense = operator.dense(x)
+    _, _, layout = operator.level_blocks(x)
+    bands = dense.reshape(dense.shape[0], -1)[:, layout.band_entries]
+    return dense, bands, layout
+
+
+@needs_compiler
+@pytest.mark.parametrize("batch", [2, 5, 8])
+def test_the_tiles_solve_the_worms_newton_systems_as_dense_algebra(batch: int) -> None:
+    # 5 fills two tiles, the second with three identity lanes; noise of 3e-3 makes a Hessian indefinite
+    noise = [1e-4 * entry for entry in range(batch)]
+    noise[1] = 3e-3
+    dense, bands, layout = _worm_systems(noise)
+    definite = (torch.linalg.cholesky_ex(dense).info == 0).tolist()
+    assert not definite[1]
+    rhs = torch.randn(batch, dense.shape[-1], generator=torch.Generator().manual_seed(5), dtype=dense.dtype)
+    kept = bands.clone()
+    solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library())
+    assert torch.equal(bands, kept)  # the tiles are a copy: the caller's storage is untouched
+    assert solved.tolist() == definite
+    for entry in range(batch):
+        if not definite[entry]:
+            assert bool((solution[entry] == 0).all())
+            continue
+        expected = torch.linalg.solve(dense[entry], rhs[entry])
+        assert float((solution[entry] - expected).norm() / expected.norm()) < RTOL
+
+
+@needs_compiler
+def test_a_nan_system_fails_alone_and_leaves_its_tile_mates_exact() -> None:
+    dense, bands, layout = _worm_systems([0.0, 1e-4, 2e-4, 3e-4])
+    bands[2, 7, 3] = float("nan")
+    rhs = torch.randn(4, dense.shape[-1], generator=torch.Generator().manual_seed(6), dtype=dense.dtype)
+    solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library())
+    assert solved.tolist() == [True, True, False, True]
+    assert bool(torch.isfinite(solution).all()) and bool((solution[2] == 0).all())
+    for entry in (0, 1, 3):
+        expected = torch.linalg.solve(dense[entry], rhs[entry])
+        assert float((solution[entry] - expected).norm() / expected.norm()) < RTOL
+
+
+@needs_compiler
+def test_both_band_paths_give_one_solution(monkeypatch: pytest.MonkeyPatch) -> None:
+    dense, bands, layout = _worm_systems([0.0, 2e-4, 3e-3])
+    rhs = torch.randn(3, dense.shape[-1], generator=torch.Generator().manual_seed(8), dtype=dense.dtype)
+    tiles, tiles_solved = banded.solve_bands(bands.clone(), rhs, layout)
+    monkeypatch.setenv("ENERGYSIM_NATIVE", "0")
+    assert native.library() is None
+    lapack, lapack_solved = banded.solve_bands(bands.clone(), rhs, layout)
+    assert torch.equal(tiles_solved, lapack_solved)
+    assert float((tiles - lapack).norm() / lapack.norm()) < RTOL
+
+
+@needs_compiler
+def test_the_kernels_are_built_once_and_kept(fresh_build: None, tmp_path) -> None:
+    assert native.library() is not None
+    built = sorted(tmp_path.iterdir())
+    # one shared object, no build folder left behind
+    assert len(built) == 1 and built[0].suffix == ".so"
+    stamp = built[0].stat().st_mtime_ns
+    native._load.cache_clear()
+    assert native.library() is not None
+    assert sorted(tmp_path.iterdir()) == built and built[0].stat().st_mtime_ns == stamp
+
+
+def test_without_a_compiler_the_band_solve_warns_and_stays_exact(
+    fresh_build: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CC", "no-such-compiler-energysim")
+    with pytest.warns(RuntimeWarning, match="no C compiler"):
+        assert native.library() is None
+    dense, bands, layout = _worm_systems([0.0, 1e-4])
+    rhs = torch.randn(2, dense.shape[-1], generator=torch.Generator().manual_seed(9), dtype=dense.dtype)
+    solution, solved = banded.solve_bands(bands, rhs, layout)
+    assert bool(solved.all())
+    expected = torch.linalg.solve(dense, rhs[..., None])[..., 0]
+    assert float((solution - expected).norm() / expected.norm()) < RTOL
