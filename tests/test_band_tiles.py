@@ -108,3 +108,15 @@ def test_without_a_compiler_the_band_solve_warns_and_stays_exact(
     assert bool(solved.all())
     expected = torch.linalg.solve(dense, rhs[..., None])[..., 0]
     assert float((solution - expected).norm() / expected.norm()) < RTOL
+
+
+
+def test_an_unloadable_cached_kernel_warns_and_leaves_lapack(
+    fresh_build: None, monkeypatch: pytest.MonkeyPatch, tmp_path
+) -> None:
+    # a file in the cache that is no shared object (a foreign or truncated copy): a clear fallback
+    spoiled = tmp_path / "band_tiles-spoiled.so"
+    spoiled.write_bytes(b"not a shared object")
+    monkeypatch.setattr(native, "_build", lambda: spoiled)
+    with pytest.warns(RuntimeWarning, match="could not be built"):
+        assert native.library() is None

@@ -71,16 +71,15 @@ def architecture_flags() -> list[str]:
 @functools.cache
 def _load() -> ctypes.CDLL | None:
     try:
-        path = _build()
-    except (OSError, subprocess.SubprocessError, RuntimeError) as error:
+        return _declare(ctypes.CDLL(str(_build())))
+    except (OSError, AttributeError, subprocess.SubprocessError, RuntimeError) as error:
         warnings.warn(
-            f"energysim: the C band kernels could not be built ({error}); the band solves take "
+            f"energysim: the C band kernels could not be built or loaded ({error}); the band solves take "
             "LAPACK's one-matrix routines instead (slower for batches, same results)",
             RuntimeWarning,
             stacklevel=3,
         )
         return None
-    return _declare(ctypes.CDLL(str(path)))
 
 
 def _build() -> Path:
