@@ -1,9 +1,9 @@
 """The package's C kernels, compiled on first use by the system C compiler and loaded with ctypes.
 
 Only what neither torch nor LAPACK offers lives here: a band Cholesky of many small systems at once
-(`band_tiles.c`; LAPACK's `?pbtrf` takes one matrix per call). Every kernel has a pure
-torch/scipy path beside it that gives the same result, so a machine without a compiler loses speed,
-not function: `library()` returns None there, and callers take the other path.
+(`band_tiles.c`; LAPACK's `?pbtrf` takes one matrix per call). Every kernel has a torch/scipy path
+beside it that gives the same result to rounding, so a machine without a compiler loses speed, not
+function: `library()` returns None there, and callers take the other path.
 
 The shared object is built once per source, compiler and flags into a cache folder
 (`$ENERGYSIM_CACHE_DIR`, else `$XDG_CACHE_HOME/energysim`, else `~/.cache/energysim`), written under
