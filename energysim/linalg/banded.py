@@ -10,7 +10,8 @@ Hessian is assembled straight into band storage (`band_positions`). Unlike
 the block-tridiagonal solve, it is one LAPACK call per system, with no Python loop over levels, so it
 pays for a single body too. LAPACK has no batched band routine, so on its path a batch is a loop
 over entries; the C kernel interleaves four systems per SIMD vector instead (`solve_bands_in_tiles`:
-4.9 against 12.5 ms for 64 worms). There is no CUDA form: this path is for the CPU (`prefer_band`).
+4.9 against 12.5 ms for 64 systems of the worm's size). There is no CUDA form: this path is for
+the CPU (`prefer_band`).
 """
 
 from __future__ import annotations

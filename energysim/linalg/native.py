@@ -39,7 +39,7 @@ def enabled() -> bool:
 
 def library() -> ctypes.CDLL | None:
     """The loaded kernels, built first where the cache lacks them; None where they are turned off or
-    no C compiler built them (a warning names why, once)."""
+    could not be built or loaded (a warning names why, once)."""
     return _load() if enabled() else None
 
 
