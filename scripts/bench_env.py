@@ -44,6 +44,7 @@ from __future__ import annotations
 import cProfile
 import dataclasses
 import io
+import math
 import pstats
 import statistics
 import time
@@ -296,6 +297,22 @@ PHYSICS = {
 }
 
 
+def gait_caption(seconds: float) -> str:
+    """What the gait columns hold: the error against a finer reference, or that the gait was not walked
+    (`--no-gait`)."""
+    if math.isnan(seconds):
+        return "The gait was not walked (`--no-gait`): no gait error."
+    return (
+        f"Gait error: the suggested gait's forward distance in {seconds:g} s against the same "
+        "model four times finer in time, in float64 (the reference's distance beside it)."
+    )
+
+
+def _number(value: float, spec: str) -> str:
+    # a table cell: blank where the value was not measured (NaN)
+    return "" if math.isnan(value) else format(value, spec)
+
+
 def markdown(rows: list[Row], threads: int) -> str:
     """The results as a markdown table, the envs side by side when both were run."""
     dynamics = activation_text(rows[0].activation_time_constant)
@@ -316,10 +333,8 @@ def markdown(rows: list[Row], threads: int) -> str:
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
         "range; the envs of one creature and B took turns, four each. Work: leapfrog substeps "
         "per physics step, or Newton iterations per physics step (the mean over the entries of each "
-        "one's own count; the batched solve runs as many as its "
-        "slowest entry) with the largest velocity residual a solve left. "
-        f"Gait error: the suggested gait's forward distance in {rows[0].gait_seconds:g} s against the same "
-        "model four times finer in time, in float64 (the reference's distance beside it).",
+        "one's own count; the batched solve runs as many as its slowest entry) with the largest "
+        "velocity residual a solve left. " + gait_caption(rows[0].gait_seconds),
         "",
     ]
     header = ["creature", "B", "integrator", "calls", "median ms/call (IQR)", "env steps/s (IQR range)",
@@ -329,7 +344,7 @@ def markdown(rows: list[Row], threads: int) -> str:
          f"{r.env_steps_per_second:.1f} ({r.env_steps_per_second_low:.1f}–{r.env_steps_per_second_high:.1f})",
          f"{r.substeps} substeps" if r.integrator == "leapfrog" else f"{r.newton_iterations:.1f} Newton",
          "" if r.integrator == "leapfrog" else f"{r.solver_residual:.1e}", r.failures,
-         f"{r.gait_distance_reference:.4f}", f"{r.gait_distance_error:.1e}"]
+         _number(r.gait_distance_reference, ".4f"), _number(r.gait_distance_error, ".1e")]
         for r in rows
     ])
     implicit = {(r.creature, r.batch): r for r in rows if r.integrator != "leapfrog"}

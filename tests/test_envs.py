@@ -541,6 +541,8 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
         assert row.env_steps_per_second == pytest.approx(row.batch / (1e-3 * row.ms_per_call))
     table = (tmp_path / "bench_env.md").read_text()
     assert "| crawler2d | 2 |" in table and (tmp_path / "bench_env.csv").exists()
+    # without the gait, the caption says so and its cells stay blank rather than "nan"
+    assert "The gait was not walked" in table and "nan" not in table
     # the env's body model by default
     assert "τ = 0.05 s" in table and rows[0].activation_time_constant == 0.05
     # the activation time constant reaches the env and is recorded in both files
