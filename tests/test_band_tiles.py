@@ -37,19 +37,38 @@ def _worm_systems(noise: list[float]) -> tuple[torch.Tensor, torch.Tensor, torch
     return dense, bands, layout
 
 
+def _batch_last_view(bands: torch.Tensor, spare: int) -> torch.Tensor:
+    """`bands` `[B, N, w]` as a view of batch-last memory whose rows hold `spare` more columns than B,
+    as the compiled band Hessian hands them over (there one: the storage's dropped slot)."""
+    batch = bands.shape[0]
+    wide = torch.zeros(bands.shape[1] * bands.shape[2], batch + spare, dtype=bands.dtype)
+    wide[:, :batch] = bands.reshape(batch, -1).T
+    return wide[:, :batch].T.reshape(bands.shape)
+
+
 @needs_compiler
+@pytest.mark.parametrize("storage", ["batch-major", "batch-last", "padded columns"])
 @pytest.mark.parametrize("batch", [2, 5, 8])
-def test_the_tiles_solve_the_worms_newton_systems_as_dense_algebra(batch: int) -> None:
-    # 5 fills two tiles, the second with three identity lanes; noise of 3e-3 makes a Hessian indefinite
+def test_the_tiles_solve_the_worms_newton_systems_as_dense_algebra(batch: int, storage: str) -> None:
+    # 5 fills two tiles, the second with three identity lanes; noise of 3e-3 makes a Hessian indefinite.
+    # batch-major and batch-last storage (a row stride of B + 3) are read where they lie; columns
+    # padded to w + 2 entries, which no pair of strides describes, are copied first
     noise = [1e-4 * entry for entry in range(batch)]
     noise[1] = 3e-3
     dense, bands, layout = _worm_systems(noise)
+    if storage == "batch-last":
+        bands = _batch_last_view(bands, spare=3)
+    if storage == "padded columns":
+        padded = torch.zeros(*bands.shape[:2], bands.shape[2] + 2, dtype=bands.dtype)
+        padded[..., : bands.shape[2]] = bands
+        bands = padded[..., : bands.shape[2]]
+    assert (banded._band_strides(bands)[0] is bands) == (storage != "padded columns")
     definite = (torch.linalg.cholesky_ex(dense).info == 0).tolist()
     assert not definite[1]
     rhs = torch.randn(batch, dense.shape[-1], generator=torch.Generator().manual_seed(5), dtype=dense.dtype)
     kept = bands.clone()
     solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library())
-    assert torch.equal(bands, kept)  # the tiles are a copy: the caller's storage is untouched
+    assert torch.equal(bands, kept)  # the kernel only reads the caller's storage
     assert solved.tolist() == definite
     for entry in range(batch):
         if not definite[entry]:

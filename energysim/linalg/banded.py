@@ -10,8 +10,8 @@ Hessian is assembled straight into band storage (`band_positions`). Unlike
 the block-tridiagonal solve, it is one LAPACK call per system, with no Python loop over levels, so it
 pays for a single body too. LAPACK has no batched band routine, so on its path a batch is a loop
 over entries; the C kernel interleaves four systems per SIMD vector instead (`solve_bands_in_tiles`:
-4.9 against 12.5 ms for 64 systems of the worm's size). There is no CUDA form: this path is for
-the CPU (`prefer_band`).
+4.6–4.8 against 12.1–12.8 ms for 64 random systems of the worm's size, read where they lie). There
+is no CUDA form: this path is for the CPU (`prefer_band`).
 """
 
 from __future__ import annotations
@@ -84,18 +84,21 @@ def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor
 def solve_bands_in_tiles(
     bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL
 ) -> tuple[Tensor, Tensor]:
-    """`solve_bands` by the C kernels of `energysim.linalg.native` (float64, CPU): the systems are
-    interleaved four to a tile (`band_tiles.c`; a short last tile is filled with identities), each
-    SIMD operation serving four of them. `bands` is left unchanged."""
+    """`solve_bands` by the C kernel of `energysim.linalg.native` (float64, CPU), four systems to a
+    tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands where
+    they lie (`_band_strides`); batch-last storage, the compiled band Hessian's transposed view, it
+    gathers four systems at a time. `bands` is left unchanged."""
     batch, size, width = bands.shape
     tiles = -(-batch // TILE)
-    packed = torch.empty(tiles, size, width, TILE, dtype=bands.dtype)
-    _interleave(packed.permute(0, 3, 1, 2), bands, padding=1.0)
+    storage, entry_stride, batch_stride = _band_strides(bands)
     values = torch.empty(tiles, size, TILE, dtype=bands.dtype)
-    _interleave(values.permute(0, 2, 1)[..., None], rhs[:, layout.band_order, None], padding=0.0)
+    _interleave(values.permute(0, 2, 1)[..., None], rhs[:, layout.band_order, None])
     positive_definite = torch.ones(tiles * TILE, dtype=torch.uint8)
-    kernels.band_cholesky_tiles(packed.data_ptr(), tiles, size, width, positive_definite.data_ptr())
-    kernels.band_substitute_tiles(packed.data_ptr(), values.data_ptr(), tiles, size, width)
+    work = torch.empty(size * width * TILE, dtype=bands.dtype)
+    kernels.band_solve_tiles(
+        storage.data_ptr(), entry_stride, batch_stride, batch, size, width,
+        values.data_ptr(), positive_definite.data_ptr(), work.data_ptr(),
+    )
     solved = positive_definite[:batch].bool()
     in_order = values.permute(0, 2, 1).reshape(tiles * TILE, size)[:batch]
     solution = torch.zeros_like(rhs)
@@ -104,9 +107,19 @@ def solve_bands_in_tiles(
     return solution, solved
 
 
-def _interleave(lanes: Tensor, matrices: Tensor, padding: float) -> None:
+def _band_strides(bands: Tensor) -> tuple[Tensor, int, int]:
+    # `bands` `[B, N, w]` as the kernel reads them, entry (b, i, r) at (i·w + r)·entry_stride +
+    # b·batch_stride: the tensor itself where its strides allow that (batch-last or batch-major), else
+    # a contiguous copy; and the two strides
+    _, _, width = bands.shape
+    if bands.stride(1) != width * bands.stride(2):
+        bands = bands.contiguous()
+    return bands, bands.stride(2), bands.stride(0)
+
+
+def _interleave(lanes: Tensor, matrices: Tensor) -> None:
     # write `matrices` `[B, N, w]` into tile lanes `[tiles, 4, N, w]` (a view of the interleaved
-    # storage); lanes past B get `padding` on column 0 (the diagonal) and zeros elsewhere
+    # storage); lanes past B get zeros
     batch = matrices.shape[0]
     full = batch // TILE
     lanes[:full].copy_(matrices[: full * TILE].reshape(full, TILE, *matrices.shape[1:]))
@@ -114,7 +127,6 @@ def _interleave(lanes: Tensor, matrices: Tensor, padding: float) -> None:
     if rest:
         lanes[full, :rest].copy_(matrices[full * TILE :])
         lanes[full, rest:].zero_()
-        lanes[full, rest:, :, 0] = padding
 
 
 def factorise_bands(bands: Tensor) -> list[BandFactor | None]:

@@ -107,8 +107,6 @@ def _build() -> Path:
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     pointer, size = ctypes.c_void_p, ctypes.c_long
-    lib.band_cholesky_tiles.argtypes = [pointer, size, size, size, pointer]
-    lib.band_cholesky_tiles.restype = None
-    lib.band_substitute_tiles.argtypes = [pointer, pointer, size, size, size]
-    lib.band_substitute_tiles.restype = None
+    lib.band_solve_tiles.argtypes = [pointer, size, size, size, size, size, pointer, pointer, pointer]
+    lib.band_solve_tiles.restype = None
     return lib
