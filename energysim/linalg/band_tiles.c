@@ -113,9 +113,9 @@ static void substitute_tile(const double *restrict tile, double *restrict v, lon
  * (tiles = ceil(batch / 4)), which are overwritten by the solutions; ok[b] is set to 0 where A_b is
  * not positive definite. Entry r of column i of matrix b is a[(i * w + r) * entry_stride + b *
  * batch_stride]: batch-last storage (batch_stride 1) is gathered four entries at a time, any other
- * lane by lane. `a` is only read; `work` holds n * w * 4 doubles. Gathering a tile just before its
- * factorisation keeps it in cache for the factorisation and both substitutions, where factorising
- * every tile first sent them through memory. */
+ * lane by lane. `a` is only read; `work` holds n * w * 4 doubles. A tile gathered just before its
+ * factorisation stays in cache for the factorisation and both substitutions: its factors never
+ * travel through memory. */
 void band_solve_tiles(const double *restrict a, long entry_stride, long batch_stride, long batch, long n,
                       long w, double *restrict x, unsigned char *restrict ok, double *restrict work) {
   const long tiles = (batch + LANES - 1) / LANES, entries = n * w;
@@ -126,8 +126,8 @@ void band_solve_tiles(const double *restrict a, long entry_stride, long batch_st
         memcpy(work + e * LANES, a + e * entry_stride + first, sizeof(double) * LANES);
     } else {
       for (long lane = 0; lane < LANES; ++lane) {
-        const double *matrix = a + (first + lane) * batch_stride;
         if (lane < count) {
+          const double *matrix = a + (first + lane) * batch_stride;
           for (long e = 0; e < entries; ++e) work[e * LANES + lane] = matrix[e * entry_stride];
         } else { /* padding: the identity */
           for (long e = 0; e < entries; ++e) work[e * LANES + lane] = e % w == 0 ? 1.0 : 0.0;
