@@ -129,7 +129,6 @@ def test_without_a_compiler_the_band_solve_warns_and_stays_exact(
     assert float((solution - expected).norm() / expected.norm()) < RTOL
 
 
-
 def test_an_unloadable_cached_kernel_warns_and_leaves_lapack(
     fresh_build: None, monkeypatch: pytest.MonkeyPatch, tmp_path
 ) -> None:

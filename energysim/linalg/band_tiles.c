@@ -4,9 +4,9 @@
  * w = u + 1) at a[(i * w + r) * entry_stride + b * batch_stride]; batch-last (batch_stride 1) is the
  * layout the compiled Hessian hands over. Each tile of four matrices is gathered into a work buffer
  * `[n, w, 4]` (a short last tile padded with identities), factorised and solved there while it is in
- * cache. One SIMD vector
- * holds the same entry of the four matrices of a tile, so every operation serves four systems, and a
- * tile's columns lie together, so the u columns a new column reads stay in cache.
+ * cache. One SIMD vector holds the same entry of the four matrices of a tile, so every operation
+ * serves four systems, and a tile's columns lie together, so the u columns a new column reads stay
+ * in cache.
  *
  * The factorisation is left-looking (column j is A[:, j] less the dot products of the rows of the
  * columns before it), with SB rows of column j accumulated in registers at a time: each load of

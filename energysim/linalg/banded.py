@@ -38,8 +38,8 @@ BandFactor = np.ndarray
 BAND_MARGIN = 6
 # Entries of a batch are factorised one LAPACK call each; past a few, the batched level solve wins.
 BAND_MAX_BATCH = 4
-# Systems of the worm's size (N = 432, u = 44) took 0.32 ms in one tile against LAPACK's 0.53 ms
-# for three, 0.35 against 0.36 for two and 0.34 against 0.18 for one (`solve_bands_in_tiles`)
+# Systems of the worm's size (N = 432, u = 44) took 0.33 ms in one tile against LAPACK's 0.59 ms
+# for three, 0.35 against 0.41 for two and 0.37 against 0.19 for one (`solve_bands_in_tiles`)
 TILE_MIN_BATCH = 3
 TILE = 4
 
@@ -91,8 +91,10 @@ def solve_bands_in_tiles(
     batch, size, width = bands.shape
     tiles = -(-batch // TILE)
     storage, entry_stride, batch_stride = _band_strides(bands)
-    values = torch.empty(tiles, size, TILE, dtype=bands.dtype)
-    _interleave(values.permute(0, 2, 1)[..., None], rhs[:, layout.band_order, None])
+    # the right-hand sides as the tiles' lanes `[tiles, N, 4]`, zero past the batch
+    padded = rhs.new_zeros(tiles * TILE, size)
+    padded[:batch] = rhs[:, layout.band_order]
+    values = padded.reshape(tiles, TILE, size).transpose(1, 2).contiguous()
     positive_definite = torch.ones(tiles * TILE, dtype=torch.uint8)
     work = torch.empty(size * width * TILE, dtype=bands.dtype)
     kernels.band_solve_tiles(
@@ -115,18 +117,6 @@ def _band_strides(bands: Tensor) -> tuple[Tensor, int, int]:
     if bands.stride(1) != width * bands.stride(2):
         bands = bands.contiguous()
     return bands, bands.stride(2), bands.stride(0)
-
-
-def _interleave(lanes: Tensor, matrices: Tensor) -> None:
-    # write `matrices` `[B, N, w]` into tile lanes `[tiles, 4, N, w]` (a view of the interleaved
-    # storage); lanes past B get zeros
-    batch = matrices.shape[0]
-    full = batch // TILE
-    lanes[:full].copy_(matrices[: full * TILE].reshape(full, TILE, *matrices.shape[1:]))
-    rest = batch - full * TILE
-    if rest:
-        lanes[full, :rest].copy_(matrices[full * TILE :])
-        lanes[full, rest:].zero_()
 
 
 def factorise_bands(bands: Tensor) -> list[BandFactor | None]:
