@@ -177,8 +177,19 @@ _SOURCES: dict[str, Callable] = {
 # the CPU, with every evaluation realized, a 64-worm env had not finished its first compiled steps
 # after 20 minutes.
 _REALIZE: dict[str, object] = {"realize_opcount_threshold": 4}
+# The batch-last Hessian's element kernels are hundreds of scalar expressions over one loop; Inductor
+# fuses at most 64 nodes into a kernel by default, so the entries of the worm's three element terms
+# were split over several loops that wrote their intermediates to memory and read them back. With
+# the cap raised, they share one loop: the band Hessian of 64 worms took 6.8 instead of 9.8 ms a
+# call (one thread, caches evicted; docs/benchmarks.md).
+_FUSE_ALL: dict[str, object] = {"max_fusion_size": 1024}
 _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
-    "cpu": {"hessian_entries": _REALIZE, "constant_hessian_entries": _REALIZE},
+    "cpu": {
+        "hessian_entries": _REALIZE,
+        "constant_hessian_entries": _REALIZE,
+        "hessian_entries_batch_last": _FUSE_ALL,
+        "constant_hessian_entries_batch_last": _FUSE_ALL,
+    },
     "cuda": {
         name: _REALIZE
         for name in (
