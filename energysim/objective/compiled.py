@@ -178,7 +178,7 @@ _SOURCES: dict[str, Callable] = {
 # after 20 minutes.
 _REALIZE: dict[str, object] = {"realize_opcount_threshold": 4}
 # The batch-last Hessian's element kernels are hundreds of scalar expressions over one loop; Inductor
-# fuses at most 64 nodes into a kernel by default, so the entries of the worm's three element terms
+# fuses at most 64 nodes into a kernel by default, so the entries of the worm's element terms
 # were split over several loops that wrote their intermediates to memory and read them back. With
 # the cap raised, they share one loop: the band Hessian of 64 worms took 6.8 instead of 9.8 ms a
 # call (one thread, caches evicted; docs/benchmarks.md).
