@@ -101,6 +101,33 @@ def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly():
         objective.cut_back(inside, [down, up])
 
 
+def test_scenes_that_differ_only_in_a_terms_float_are_each_evaluated_with_their_own():
+    # the ground's d̂ is a float attribute of a term: each value gets graphs of its own. Dynamo's
+    # default makes a float a graph input once it has met a second value, and in torch 2.13 such a
+    # graph kept the first value in some operations: A's barrier energy came back with B's d̂ (4e-4
+    # relative), so two compiled envs with different grounds in one process failed their solves
+    def objective(d_hat: float) -> tuple[Objective, torch.Tensor]:
+        scene = load_creature("worm").scene(1 / 60, 0.8, barrier_distance=d_hat)
+        state = resting_state(scene).reshape(1, -1).expand(2, -1)
+        x, v = scene.split_state(state)
+        terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, v, scene.free)
+        built = Objective(terms, scene.free, scene.dt / scene.vertex_mass, None, anchor=x.clone())
+        terms[0].anchor = built.anchor
+        # vertices from d̂/2 up (the second entry 0.2 mm higher): some lie between the d̂ values,
+        # inside one barrier's range and outside another's
+        x = x.clone()
+        x[1, :, 1] += 2e-4
+        return built, x
+
+    for d_hat in (9e-4, 3e-4, 9e-4, 6e-4):
+        built, x = objective(d_hat)
+        energy, gradient = built.energy_and_gradient(x)
+        built.compiled = True
+        compiled_energy, compiled_gradient = built.energy_and_gradient(x)
+        assert torch.allclose(compiled_energy, energy, rtol=1e-12, atol=0), d_hat
+        assert torch.allclose(compiled_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))
+
+
 def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     scene = es.Scene(small_box(3), dt=1 / 60)
     scene.add(es.NeoHookean(1e5, 0.3))

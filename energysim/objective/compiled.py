@@ -205,6 +205,13 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
 }
 _COMPILED: dict[tuple[str, str], Callable] = {}
 _FAILED: set[str] = set()
+# A term's float attributes (a barrier's d̂, a friction's ε_v) stay constants of the graphs, guarded,
+# so that another value compiles graphs of its own. By default Dynamo makes such a float an input
+# of the graph once it has met a second value, and in torch 2.13 those graphs kept the value they
+# were first traced with in some operations (`torch.where(t < d, t, d)`, `full_like(t, d)`): the
+# barrier's energy of one scene evaluated with the d̂ of another, so two compiled environments with
+# different grounds in one process failed their solves.
+_SPECIALIZE_FLOATS = {"specialize_float": True} if hasattr(torch._dynamo.config, "specialize_float") else {}
 
 
 def _compiled(name: str, device_type: str) -> Callable | None:
@@ -225,7 +232,7 @@ def call(name: str, *args: object) -> object | None:
     if function is None:
         return None
     try:
-        with torch.no_grad():
+        with torch.no_grad(), torch._dynamo.config.patch(**_SPECIALIZE_FLOATS):
             return function(*args)
     except Exception as error:  # noqa: BLE001 - any compiler failure means: evaluate eagerly
         _FAILED.add(name)
