@@ -6,7 +6,10 @@ h = 1/60 s, the env's body model), reset with seed 0 and driven by the same unif
 actions. After `--warmup` untimed steps, the variants' `--steps` timed step calls are interleaved,
 so a slow moment of a shared machine falls on all of them alike. The variants:
 
-- `default`: the env as shipped (tol 1e-4 m/s, ε_v = 5e-3 m/s, the ground's default κ);
+- `default`: the env as shipped (tol 1e-4 m/s, ε_v = 5e-3 m/s, d̂ = 3e-3 × the body's
+  bounding-box diagonal, κ by the ground's rule);
+- `d_hat 1e-3 diag`: the barrier's range d̂ of the `Ground` default, 1e-3 × the diagonal (the env's
+  before it took 3e-3);
 - `tol 1e-2`: the solver's tolerance loosened 100×;
 - `eps_v 1e-2`: the friction smoothing doubled;
 - `kappa x10`, `kappa x100`: a stiffer barrier, so that the bodies rest closer to d̂;
@@ -19,7 +22,11 @@ forward distance in 2 s by one creature of that variant (how much the variant ch
 For the default it also reports how far the contact gaps move in one step: quantiles of
 log10(d_{n+1} / d_n) over the vertices within the barrier's range d̂ at either end.
 
+Every variant compiles its own graphs in this one process, so Dynamo's limit on graphs per
+function is raised here; past it a function would fall back to eager evaluation silently.
+
 Run:  python scripts/bench_env_iterations.py --out docs/benchmarks/bench_env_iterations
+      python scripts/bench_env_iterations.py --variants default "d_hat 1e-3 diag"   (a subset)
 Writes: <out>/bench_env_iterations.csv, .md (the table) and .png.
 """
 
@@ -36,7 +43,7 @@ import torch
 from _bench import configure_threads, make_parser, pyplot, save_figure, table, write_outputs
 from bench_env import GAIT_SECONDS, gait_distance
 
-from energysim.creatures import CREATURES
+from energysim.creatures import CREATURES, load_creature
 from energysim.envs import CreatureVectorEnv
 from energysim.envs.core import CreatureSimulation
 
@@ -57,19 +64,31 @@ def _lower_ground(simulation: CreatureSimulation) -> None:
         simulation.ground.offset.sub_(5.0)
 
 
+def _ground_default_range(creature: str) -> dict:
+    # the `Ground` default d̂: 1e-3 × the rest bounding-box diagonal
+    low, high = load_creature(creature).mesh.bounding_box()
+    return {"barrier_distance": 1e-3 * float((high - low).norm())}
+
+
 @dataclass(frozen=True)
 class Variant:
-    """One configuration: env options, a change to the built simulation, a change after the reset."""
+    """One configuration: env options (or a function of the creature that gives them), a change to
+    the built simulation, a change after the reset."""
 
     name: str
-    options: dict = field(default_factory=dict)
+    options: dict | Callable[[str], dict] = field(default_factory=dict)
     built: Adjust | None = None
     after_reset: Adjust | None = None
     walks: bool = True
 
+    def options_for(self, creature: str) -> dict:
+        """The env options of this variant for `creature`."""
+        return self.options(creature) if callable(self.options) else dict(self.options)
+
 
 VARIANTS = (
     Variant("default"),
+    Variant("d_hat 1e-3 diag", _ground_default_range),
     Variant("tol 1e-2", {"solver_tol": 1e-2}),
     Variant("eps_v 1e-2", {"friction_smoothing": 1e-2}),
     Variant("kappa x10", built=_scale_barrier(10.0)),
@@ -100,12 +119,19 @@ def contact_distances(env: CreatureVectorEnv) -> np.ndarray:
 
 
 def run(
-    creature: str, batch: int, steps: int, warmup: int, gait: bool, compiled: bool = True
+    creature: str,
+    batch: int,
+    steps: int,
+    warmup: int,
+    gait: bool,
+    compiled: bool = True,
+    variants: tuple[Variant, ...] = VARIANTS,
 ) -> tuple[list[Row], np.ndarray]:
-    """Every variant's row, and the default's per-step log10 gap ratios of the vertices in contact."""
+    """Every variant's row, and the first variant's per-step log10 gap ratios of the vertices in
+    contact."""
     envs = []
-    for variant in VARIANTS:
-        env = CreatureVectorEnv(batch, creature, solver_compile=compiled, **variant.options)
+    for variant in variants:
+        env = CreatureVectorEnv(batch, creature, solver_compile=compiled, **variant.options_for(creature))
         if variant.built is not None:
             variant.built(env.simulation)
         env.reset(seed=0)
@@ -115,9 +141,9 @@ def run(
         for _ in range(warmup):
             env.step(env.action_space.sample())
         envs.append(env)
-    walls = [[] for _ in VARIANTS]
-    iterations = [[] for _ in VARIANTS]
-    residuals = [[0.0] for _ in VARIANTS]
+    walls = [[] for _ in variants]
+    iterations = [[] for _ in variants]
+    residuals = [[0.0] for _ in variants]
     ratios = []
     reach = envs[0].simulation.ground.barrier_distance
     for _ in range(steps):
@@ -135,10 +161,10 @@ def run(
                 near = (before < reach) | (after < reach)
                 ratios.append(np.log10(after[near] / before[near]))
     rows = []
-    for index, variant in enumerate(VARIANTS):
+    for index, variant in enumerate(variants):
         distance = float("nan")
         if gait and variant.walks:
-            options = {"solver_compile": compiled, **variant.options}
+            options = {"solver_compile": compiled, **variant.options_for(creature)}
             distance = gait_distance(creature, options, "cpu", GAIT_SECONDS, prepare=variant.built)
         rows.append(
             Row(
@@ -182,7 +208,7 @@ def markdown(rows: list[Row], ratios: np.ndarray, threads: int, compiled: bool =
     spread = ", ".join(f"{q:g}: {v:+.2f}" for q, v in zip(QUANTILES, values, strict=True))
     lines += [
         "",
-        f"Default: how far the contact gaps move in one step, log10(d_n+1 / d_n) over {ratios.size} "
+        f"{first.variant}: how far the contact gaps move in one step, log10(d_n+1 / d_n) over {ratios.size} "
         f"vertex-steps within d̂ at either end; quantiles {spread}.",
     ]
     return "\n".join(lines) + "\n"
@@ -211,12 +237,24 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument("--warmup", type=int, default=8, help="untimed step calls first (compiles)")
     parser.add_argument("--no-gait", action="store_true", help="skip the gait distances")
     parser.add_argument("--eager", action="store_true", help="eager evaluations instead of compiled ones")
+    names = [variant.name for variant in VARIANTS]
+    parser.add_argument(
+        "--variants", nargs="+", default=names, choices=names, metavar="NAME",
+        help=f"the variants to run, in this order (default all: {', '.join(names)})",
+    )
     args = parser.parse_args(argv)
     if args.batch_size < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
         parser.error("--batch-size, --steps and --threads must be >= 1 and --warmup >= 0")
     configure_threads(args.threads)
     compiled = not args.eager
-    rows, ratios = run(args.creature, args.batch_size, args.steps, args.warmup, not args.no_gait, compiled)
+    variants = tuple(VARIANTS[names.index(name)] for name in args.variants)
+    # each variant's envs compile their own graphs (one per batch size their compaction meets)
+    dynamo = torch._dynamo.config
+    limit = "recompile_limit" if hasattr(dynamo, "recompile_limit") else "cache_size_limit"  # torch < 2.6
+    setattr(dynamo, limit, max(getattr(dynamo, limit), 16 * len(variants)))
+    rows, ratios = run(
+        args.creature, args.batch_size, args.steps, args.warmup, not args.no_gait, compiled, variants
+    )
     text = markdown(rows, ratios, args.threads, compiled)
     print(text)
     write_outputs(

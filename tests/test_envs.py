@@ -169,6 +169,7 @@ def _bare_scene_apart(env: CreatureEnv) -> es.Scene:
         friction=env.config.friction,
         solver=es.NewtonCG(tol=env.config.solver_tol, indefinite="shift"),
         friction_smoothing=env.config.friction_smoothing,
+        barrier_distance=env.simulation.ground.barrier_distance,
     )
 
 
@@ -602,6 +603,14 @@ def test_bench_env_iterations_varies_one_thing_at_a_time(tmp_path: Path) -> None
     assert by_name["no contact"].newton_iterations < by_name["default"].newton_iterations - 1
     text = (tmp_path / "bench_env_iterations.md").read_text()
     assert "| no contact |" in text and "log10(d_n+1 / d_n)" in text
+    # a subset, in the order asked for; the Ground's default barrier range is a third of the env's
+    rows = bench_env_iterations.main(
+        ["--creature", "crawler2d", "--batch-size", "2", "--steps", "1", "--warmup", "0", "--eager"]
+        + ["--no-gait", "--no-plot", "--out", str(tmp_path), "--variants", "d_hat 1e-3 diag", "default"]
+    )
+    assert [row.variant for row in rows] == ["d_hat 1e-3 diag", "default"]
+    narrow = bench_env_iterations.VARIANTS[1].options_for("crawler2d")["barrier_distance"]
+    assert narrow == pytest.approx(CreatureEnv("crawler2d").simulation.ground.barrier_distance / 3, rel=1e-12)
 
 
 def test_bench_env_solves_to_the_tolerance_it_is_given(tmp_path: Path) -> None:
@@ -659,3 +668,32 @@ def test_friction_smoothing_reaches_the_implicit_ground_and_bad_values_are_refus
     for bad in (0.0, -1e-3, float("nan"), "0.01"):
         with pytest.raises(ValueError, match="friction_smoothing"):
             CreatureEnv("crawler2d", friction_smoothing=bad)
+
+
+def test_the_implicit_grounds_barrier_range_is_the_envs_fraction_of_the_body_or_the_one_given() -> None:
+    from energysim.envs.config import GROUND_BARRIER_DISTANCE_FRACTION
+
+    default = CreatureEnv("crawler2d")
+    low, high = default.simulation.creature.mesh.bounding_box()
+    diagonal = float((high - low).norm())
+    assert default.simulation.ground.barrier_distance == pytest.approx(
+        GROUND_BARRIER_DISTANCE_FRACTION * diagonal, rel=1e-12
+    )
+    # the leapfrog's contact is at the surface: its ground keeps the `Ground` default (1e-3 × diagonal)
+    explicit = CreatureEnv("crawler2d", integrator="leapfrog")
+    assert explicit.simulation.ground.barrier_distance == pytest.approx(1e-3 * diagonal, rel=1e-12)
+    d_hat = 2e-4
+    chosen = CreatureVectorEnv(2, "crawler2d", barrier_distance=d_hat, activation_time_constant=0.0)
+    assert chosen.simulation.ground.barrier_distance == d_hat
+    # the reset rests each body on the chosen barrier, its lowest vertex at d̂/2; held still for
+    # 10 steps it stays on it: above the ground and inside the barrier's range
+    chosen.reset(seed=0)
+    lowest = chosen.simulation.scene.split_state(chosen.states)[0][..., 1].amin(dim=-1)
+    assert torch.allclose(lowest, torch.full_like(lowest, 0.5 * d_hat), rtol=1e-9, atol=0)
+    for _ in range(10):
+        chosen.step(np.zeros(chosen.action_space.shape, dtype=np.float32))
+    lowest = chosen.simulation.scene.split_state(chosen.states)[0][..., 1].amin(dim=-1)
+    assert bool(((lowest > 0) & (lowest < d_hat)).all()), lowest
+    for bad in (0.0, -1e-3, float("inf"), "1e-3"):
+        with pytest.raises(ValueError, match="barrier_distance"):
+            CreatureEnv("crawler2d", barrier_distance=bad)

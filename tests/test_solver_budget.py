@@ -85,7 +85,10 @@ def test_each_entry_reports_its_own_iterations_when_solved_to_the_tolerance() ->
     env.reset(seed=0)
     action = np.zeros((2, env.single_action_space.shape[0]), dtype=np.float32)
     action[0] = 1.0
-    _, _, _, _, info = env.step(action)
+    # the first steps settle both bodies onto the ground from the reset's lifted rest shape (7 and 7
+    # iterations, then 6 and 5); by the fourth the resting one needs far fewer (measured: 4 against 2)
+    for _ in range(4):
+        _, _, _, _, info = env.step(action)
     iterations, residual = info["solver_iterations"], info["solver_residual"]
     assert 1 <= iterations[1] < iterations[0]
     assert residual.max() < 1e-4
@@ -99,10 +102,12 @@ def test_each_entry_reports_its_own_residual() -> None:
     env.reset(seed=0)
     action = np.zeros((2, env.single_action_space.shape[0]), dtype=np.float32)
     action[0] = 1.0
-    _, _, _, _, info = env.step(action)
-    residual = info["solver_residual"]
-    # two iterations leave both unconverged, the driven one far worse (measured: 422 against 58 m/s);
+    # the first step settles both onto the ground from the reset's lifted rest shape; in the second,
+    # two iterations leave both unconverged, the driven one far worse (measured: 32 against 1.4 m/s);
     # a batch-wide figure would give both the larger
+    for _ in range(2):
+        _, _, _, _, info = env.step(action)
+    residual = info["solver_residual"]
     assert residual[0] > 2 * residual[1] > 0
 
 

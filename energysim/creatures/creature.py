@@ -93,6 +93,7 @@ class Creature:
         solver: Solver | None = None,
         *,
         friction_smoothing: float | None = None,
+        barrier_distance: float | None = None,
     ) -> Scene:
         """The creature on level ground: its suggested material and muscles, gravity along −y and an
         IPC ground at y = 0 with lagged Coulomb friction μ.
@@ -105,6 +106,8 @@ class Creature:
             solver: the scene's optimizer; default the `Scene` default.
             friction_smoothing: ε_v in m/s of the ground's smoothed friction (`Obstacle`); None: the
                 `Ground` default.
+            barrier_distance: d̂ in m, the range of the ground's barrier (`Obstacle`); None: the
+                `Ground` default (1e-3 × the body's bounding-box diagonal).
         """
         up = (0.0, 1.0, 0.0) if self.dim == 3 else (0.0, 1.0)
         scene = Scene(
@@ -116,8 +119,9 @@ class Creature:
         )
         scene.add(NeoHookean(self.youngs_modulus, self.poissons_ratio))
         scene.add(self.muscles())
-        smoothing = {} if friction_smoothing is None else {"friction_smoothing": friction_smoothing}
-        scene.add(Ground(0.0, normal=up, friction=friction, **smoothing))
+        options = {"friction_smoothing": friction_smoothing, "barrier_distance": barrier_distance}
+        chosen = {name: value for name, value in options.items() if value is not None}
+        scene.add(Ground(0.0, normal=up, friction=friction, **chosen))
         return scene
 
 

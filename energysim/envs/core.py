@@ -73,8 +73,16 @@ class CreatureSimulation:
             indefinite="shift",
             compile=config.solver_compile,
         )
+        low, high = self.creature.mesh.bounding_box()
+        # the leapfrog's contact is at the surface: its ground keeps the `Ground` default d̂, which
+        # only sets how high a reset lifts the body (d̂/2)
+        explicit = config.integrator == "leapfrog"
         self.scene = self.creature.scene(
-            config.dt, config.friction, solver, friction_smoothing=config.friction_smoothing
+            config.dt,
+            config.friction,
+            solver,
+            friction_smoothing=config.friction_smoothing,
+            barrier_distance=None if explicit else config.barrier_distance_for(float((high - low).norm())),
         )
         if config.body_viscosity > 0:
             self.scene.add(Viscosity(config.body_viscosity))

@@ -72,6 +72,9 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         friction: Coulomb coefficient of the ground.
         friction_smoothing: ε_v in m/s of the implicit ground's smoothed friction (default
             `envs.config.FRICTION_SMOOTHING`, 0.005 m/s); the explicit integrator's friction is exact.
+        barrier_distance: d̂ in m, the range of the implicit ground's barrier; None (default):
+            `envs.config.GROUND_BARRIER_DISTANCE_FRACTION` (3e-3) × the creature's rest bounding-box
+            diagonal. The explicit integrator's contact is at the surface.
         solver_tol: Newton–CG velocity-residual tolerance in m/s.
         solver_max_iter: most Newton iterations per physics step; more is a numerical failure.
         solver_budget: a fixed budget of Newton iterations per physics step whose last iterate is
@@ -116,6 +119,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         reset_noise_scale: float = 1e-3,
         friction: float = 0.8,
         friction_smoothing: float = FRICTION_SMOOTHING,
+        barrier_distance: float | None = None,
         solver_tol: float = 1e-4,
         solver_max_iter: int = 100,
         solver_budget: int | None = None,
@@ -143,6 +147,7 @@ class CreatureEnv(gymnasium.Env[np.ndarray, np.ndarray]):
             reset_noise_scale=reset_noise_scale,
             friction=friction,
             friction_smoothing=friction_smoothing,
+            barrier_distance=barrier_distance,
             solver_tol=solver_tol,
             solver_max_iter=solver_max_iter,
             solver_budget=solver_budget,
