@@ -119,7 +119,7 @@ def test_scenes_that_differ_only_in_a_terms_float_are_each_evaluated_with_their_
         x[1, :, 1] += 2e-4
         return built, x
 
-    for d_hat in (9e-4, 3e-4, 9e-4, 6e-4):
+    for d_hat in (9e-4, 3e-4, 9e-4):
         built, x = objective(d_hat)
         energy, gradient = built.energy_and_gradient(x)
         built.compiled = True
@@ -270,14 +270,14 @@ def test_the_compiled_level_hessian_equals_the_dense_one_in_level_blocks(pinned:
 
 def test_a_compiled_level_solve_takes_the_steps_of_the_eager_one():
     # `direct="levels"` compiled (the batched path on a GPU, here forced on the CPU): the Newton
-    # directions come from the compiled level blocks, and two steps of 3 worms under random
+    # directions come from the compiled level blocks, and two steps of 2 worms under random
     # activations land where the eager level solve lands, with the same iterations
     from energysim.linalg.linear_solve import choose
 
     scene = load_creature("worm").scene(1 / 60, 0.8)
-    state = resting_state(scene).reshape(1, -1).expand(3, -1).clone()
+    state = resting_state(scene).reshape(1, -1).expand(2, -1).clone()
     generator = torch.Generator().manual_seed(1)
-    actions = torch.rand(2, 3, 10, generator=generator, dtype=state.dtype) * 2 - 1
+    actions = torch.rand(2, 2, 10, generator=generator, dtype=state.dtype) * 2 - 1
     results = {}
     for compile_flag in (False, True):
         solver = es.NewtonCG(tol=1e-8, direct="levels", indefinite="shift", compile=compile_flag)
