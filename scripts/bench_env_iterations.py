@@ -43,6 +43,7 @@ import torch
 from _bench import configure_threads, make_parser, pyplot, save_figure, table, write_outputs
 from bench_env import GAIT_SECONDS, gait_distance
 
+from energysim.contact.obstacle_term import BARRIER_DISTANCE_FRACTION
 from energysim.creatures import CREATURES, load_creature
 from energysim.envs import CreatureVectorEnv
 from energysim.envs.core import CreatureSimulation
@@ -65,9 +66,9 @@ def _lower_ground(simulation: CreatureSimulation) -> None:
 
 
 def _ground_default_range(creature: str) -> dict:
-    # the `Ground` default d̂: 1e-3 × the rest bounding-box diagonal
+    # the `Ground` default d̂ (a fraction of the rest bounding-box diagonal)
     low, high = load_creature(creature).mesh.bounding_box()
-    return {"barrier_distance": 1e-3 * float((high - low).norm())}
+    return {"barrier_distance": BARRIER_DISTANCE_FRACTION * float((high - low).norm())}
 
 
 @dataclass(frozen=True)
