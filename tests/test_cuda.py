@@ -136,7 +136,7 @@ def test_float32_worm_on_cuda_stays_close_to_float64() -> None:
     x_ref, _ = scene.split_state(reference[-1])
     # float32 with a loose tolerance: within a millimetre of the float64 walk after half a second.
     # Several of the 30 solves warn that they stopped above 1e-3 m/s: the float32 gradient's rounding
-    # is about that large here, and a few steps stall far above it (README, "float32").
+    # is about that large here, and a slow solve stops far above it (docs/usage.md, "float32").
     assert float((x - x_ref).norm(dim=-1).max()) < 1e-3
     assert not math.isnan(float(x.sum()))
 

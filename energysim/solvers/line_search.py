@@ -156,8 +156,11 @@ def line_step(
     trial judged again with that allowance. Where even the trial's predicted decrease is below the
     noise, the energy cannot judge the step, and the directional derivatives at both ends do instead
     (the trapezoidal estimate of the change, exact for a quadratic, which the energy is on that scale);
-    a step that overshoots by that estimate is replaced by the minimiser of the quadratic. A step
-    neither can judge is taken whole and flagged `unjudged`. Where some entry still refuses its trial,
+    a step that overshoots by that estimate is replaced by the minimiser of the quadratic. A trial
+    that passes Armijo's test only thanks to the allowance must still go downhill where it lands
+    (φ'(t) ≤ 0); one past the minimum along the direction is replaced by that minimiser too (in
+    float32, such steps twice the way to the minimum had stalled Newton far above its tolerance).
+    A step neither can judge is taken whole and flagged `unjudged`. Where some entry still refuses its trial,
     the search backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
 
     `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
@@ -199,22 +202,37 @@ def line_step(
     rounding = _rounding(x, energy)
     measured = False
 
-    def armijo(trial: Tensor, step: Tensor) -> Tensor:
-        return _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
+    def strict(trial: Tensor, step: Tensor) -> Tensor:
+        # Armijo's test without the allowance for rounding
+        no_allowance = torch.zeros_like(rounding)
+        return _sufficient_decrease(energy, trial, step, slope, no_allowance, sufficient_decrease)
+
+    def within_allowance(trial: Tensor, step: Tensor) -> Tensor:
+        # Armijo's test passed only thanks to the allowance: E did not fall as it must
+        allowed = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
+        return allowed & ~strict(trial, step)
+
+    def armijo(trial: Tensor, step: Tensor, trial_slope: Tensor) -> Tensor:
+        # a trial within the allowance passes only where E still falls at it: where the predicted
+        # decrease is above the noise, the energy judges the step, and its rounding must not let
+        # through a step past the minimum along the direction (twice the way to it leaves E where
+        # it was, and a solve that takes such steps makes no progress)
+        return strict(trial, step) | (within_allowance(trial, step) & (trial_slope <= 0))
 
     unjudged = -slope * initial <= rounding
-    decrease = armijo(trial_energy, initial)
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
+    decrease = armijo(trial_energy, initial, trial_slope)
     doubtful = ~decrease & _noise_may_matter(energy, slope, initial, slope_decrease)
     if bool(doubtful.any()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = noise_floor(doubtful), True
         unjudged = -slope * initial <= rounding
-        decrease = armijo(trial_energy, initial)
-    overshot = unjudged & ~slope_decrease & (slope < 0) & (trial_slope > slope)
+        decrease = armijo(trial_energy, initial, trial_slope)
+    beyond = ~unjudged & ~decrease & within_allowance(trial_energy, initial)
+    overshot = ((unjudged & ~slope_decrease) | beyond) & (slope < 0) & (trial_slope > slope)
     if bool(overshot.any()):
         # the minimiser of the quadratic through φ'(0) and φ'(t): below t/2 where the trapezoid
-        # refused t, so inside the admissible segment
+        # refused t, below t where φ'(t) > 0, so inside the admissible segment
         curvature = torch.where(overshot, trial_slope - slope, torch.ones_like(slope))
         initial = torch.where(overshot, -initial * slope / curvature, initial)
         trial_x = x + initial[:, None, None] * direction
@@ -222,11 +240,11 @@ def line_step(
         trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
         trial_residual = objective.residual(trial_gradient)
         slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
-        decrease = armijo(trial_energy, initial)
+        decrease = armijo(trial_energy, initial, trial_slope)
         if not measured and not bool(decrease.all()):
             rounding = noise_floor(~decrease)
             unjudged = -slope * initial <= rounding
-            decrease = armijo(trial_energy, initial)
+            decrease = armijo(trial_energy, initial, trial_slope)
     # the energy cannot tell these from no change: their derivatives can
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
@@ -253,6 +271,7 @@ def line_step(
             sufficient_decrease=sufficient_decrease,
             rounding=rounding[refusing],
             initial_energy=trial_energy[refusing],
+            initial_refused=True,
         )
         moved = x[refusing] + steps[:, None, None] * direction[refusing]
         moved_energy, moved_gradient = part.energy_and_gradient(moved)
@@ -272,6 +291,7 @@ def line_step(
             sufficient_decrease=sufficient_decrease,
             rounding=rounding,
             initial_energy=trial_energy,
+            initial_refused=~decrease,
         )
         x_new = x + step[:, None, None] * direction
         new_energy, new_gradient = objective.energy_and_gradient(x_new)
@@ -299,6 +319,7 @@ def backtracking_line_search(
     max_halvings: int = 40,
     rounding: Tensor | None = None,
     initial_energy: Tensor | None = None,
+    initial_refused: Tensor | bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
@@ -323,6 +344,8 @@ def backtracking_line_search(
         rounding: that allowance `[B]` in J, if the caller has measured it already.
         max_halvings: at most this many reductions of the step (each at least halves it).
         initial_energy: E at `initial_step` `[B]`, if the caller has evaluated it already.
+        initial_refused: entries `[B]` (or all, True) whose first trial the caller has refused
+            already, on a test this energy-only search cannot make (`line_step`'s derivatives).
 
     Returns:
         step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
@@ -336,10 +359,12 @@ def backtracking_line_search(
     accepted = unjudged.clone()
     new_energy = energy.clone()
     trial = initial_energy
+    refused = torch.as_tensor(initial_refused, device=x.device) & ~unjudged
     for _ in range(max_halvings):
         if trial is None:
             trial = objective.energy(x + step[:, None, None] * direction)
-        ok = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease) & ~accepted
+        ok = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
+        ok, refused = ok & ~accepted & ~refused, torch.zeros_like(accepted)
         new_energy = torch.where(ok, trial, new_energy)
         accepted = accepted | ok
         if accepted.all():
