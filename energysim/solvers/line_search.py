@@ -213,11 +213,13 @@ def line_step(
         return allowed & ~strict(trial, step)
 
     def armijo(trial: Tensor, step: Tensor, trial_slope: Tensor) -> Tensor:
-        # a trial within the allowance passes only where E still falls at it: where the predicted
-        # decrease is above the noise, the energy judges the step, and its rounding must not let
-        # through a step past the minimum along the direction (twice the way to it leaves E where
-        # it was, and a solve that takes such steps makes no progress)
-        return strict(trial, step) | (within_allowance(trial, step) & (trial_slope <= 0))
+        # where the predicted decrease is above the rounding, the energy judges the step, and a
+        # trial within the allowance passes only where E still falls at it: the rounding must not
+        # let through a step past the minimum along the direction (twice the way to it leaves E
+        # where it was, and a solve that takes such steps makes no progress)
+        allowed = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
+        by_energy = -slope * step > rounding
+        return allowed & (~by_energy | strict(trial, step) | (trial_slope <= 0))
 
     unjudged = -slope * initial <= rounding
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
