@@ -156,12 +156,13 @@ def line_step(
     trial judged again with that allowance. Where even the trial's predicted decrease is below the
     noise, the energy cannot judge the step, and the directional derivatives at both ends do instead
     (the trapezoidal estimate of the change, exact for a quadratic, which the energy is on that scale);
-    a step that overshoots by that estimate is replaced by the minimiser of the quadratic. A trial
-    that passes Armijo's test only thanks to the allowance must still go downhill where it lands
-    (φ'(t) ≤ 0); one past the minimum along the direction is replaced by that minimiser too (in
-    float32, such steps twice the way to the minimum had stalled Newton far above its tolerance).
-    A step neither can judge is taken whole and flagged `unjudged`. Where some entry still refuses its trial,
-    the search backtracks (`backtracking_line_search`) and evaluates the gradient where it stopped.
+    a step that overshoots by that estimate is replaced by the minimiser of the quadratic. Where the
+    energy does judge, a trial that passes Armijo's test only thanks to the allowance must still go
+    downhill where it lands (φ'(t) ≤ 0), and one past the minimum along the direction is replaced by
+    that minimiser too: in float32, steps twice the way to the minimum pass on the allowance, leave
+    E where it was, and stall Newton far above its tolerance. A step neither can judge is taken
+    whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
+    (`backtracking_line_search`) and evaluates the gradient where it stopped.
 
     `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
     it is given and at most half of the entries refuse their trial, only those backtrack, on their
