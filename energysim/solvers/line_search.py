@@ -218,9 +218,8 @@ def line_step(
         # trial within the allowance passes only where E still falls at it: the rounding must not
         # let through a step past the minimum along the direction (twice the way to it leaves E
         # where it was, and a solve that takes such steps makes no progress)
-        allowed = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
         by_energy = -slope * step > rounding
-        return allowed & (~by_energy | strict(trial, step) | (trial_slope <= 0))
+        return strict(trial, step) | (within_allowance(trial, step) & (~by_energy | (trial_slope <= 0)))
 
     unjudged = -slope * initial <= rounding
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
