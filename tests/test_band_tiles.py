@@ -11,6 +11,8 @@ import torch
 from test_block_tridiagonal import _objective, _worm_batch
 
 from energysim.linalg import banded, native
+from energysim.linalg.linear_solve import BandCholesky, solve_with_shifts
+from energysim.solvers.newton_cg import INDEFINITE_SHIFTS
 
 needs_compiler = pytest.mark.skipif(native.compiler() is None, reason="no C compiler on this machine")
 RTOL = 1e-10
@@ -101,6 +103,33 @@ def test_both_band_paths_give_one_solution(monkeypatch: pytest.MonkeyPatch) -> N
     lapack, lapack_solved = banded.solve_bands(bands.clone(), rhs, layout)
     assert torch.equal(tiles_solved, lapack_solved)
     assert float((tiles - lapack).norm() / lapack.norm()) < RTOL
+
+
+@needs_compiler
+@pytest.mark.parametrize("kernels", ["tiles", "lapack"])
+def test_a_kept_band_system_shifts_from_the_unfactorised_hessian(
+    kernels: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `keep` needs H after the first solve, for the shifted retries: the tiles only read the bands, so
+    # they are kept as they are; LAPACK factorises in place, so they are copied first. Either way
+    # the indefinite entry's retry solves H + τ|diag H| of the first τ that factorises
+    if kernels == "lapack":
+        monkeypatch.setenv("ENERGYSIM_NATIVE", "0")
+    dense, bands, layout = _worm_systems([0.0, 3e-3, 2e-4])
+    assert int(torch.linalg.cholesky_ex(dense[1]).info) != 0
+    system = BandCholesky.of(bands, layout, keep=True)
+    assert (system.pristine is bands) == (kernels == "tiles")
+    gradient = torch.randn(3, dense.shape[-1], generator=torch.Generator().manual_seed(10), dtype=dense.dtype)
+    rhs = -gradient.reshape(3, -1, 3)
+    wanted = torch.ones(3, dtype=torch.bool)
+    direction, solved = solve_with_shifts(system, rhs, wanted, INDEFINITE_SHIFTS)
+    assert solved.tolist() == [True, True, True]
+    for shift in INDEFINITE_SHIFTS:
+        shifted = dense[1] + shift * torch.diag(dense[1].diagonal().abs())
+        if int(torch.linalg.cholesky_ex(shifted).info) == 0:
+            break
+    expected = torch.linalg.solve(shifted, -gradient[1])
+    assert float((direction[1].reshape(-1) - expected).norm() / expected.norm()) < RTOL
 
 
 @needs_compiler

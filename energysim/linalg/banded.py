@@ -67,6 +67,17 @@ def band_cholesky_solve(dense: Tensor, rhs: Tensor, layout: LevelLayout) -> tupl
     return solve_bands(bands, rhs, layout)
 
 
+def solve_keeps_bands(bands: Tensor) -> bool:
+    """Whether `solve_bands` leaves `bands` as they are: the C kernel reads them and factorises in its
+    own work buffer, where LAPACK's path overwrites them with the factors."""
+    return (
+        bands.dtype == torch.float64
+        and bands.shape[0] >= TILE_MIN_BATCH
+        and bands.device.type == "cpu"
+        and native.library() is not None
+    )
+
+
 def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor]:
     """`band_cholesky_solve` from the matrices already in the layout's band storage, `bands`
     `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` may
@@ -74,10 +85,8 @@ def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor
 
     Batches of float64 systems take the C kernel that factorises four at once (`solve_bands_in_tiles`)
     where it is built; the rest, LAPACK one matrix at a time."""
-    if bands.dtype == torch.float64 and bands.shape[0] >= TILE_MIN_BATCH and bands.device.type == "cpu":
-        kernels = native.library()
-        if kernels is not None:
-            return solve_bands_in_tiles(bands, rhs, layout, kernels)
+    if solve_keeps_bands(bands):
+        return solve_bands_in_tiles(bands, rhs, layout, native.library())
     return substitute_bands(factorise_bands(bands), rhs, layout)
 
 

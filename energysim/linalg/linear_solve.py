@@ -25,7 +25,14 @@ import torch
 from torch import Tensor
 
 from energysim.linalg.assembly import cached_pattern
-from energysim.linalg.banded import BandFactor, factorise_bands, prefer_band, solve_bands, substitute_bands
+from energysim.linalg.banded import (
+    BandFactor,
+    factorise_bands,
+    prefer_band,
+    solve_bands,
+    solve_keeps_bands,
+    substitute_bands,
+)
 from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
 
 if TYPE_CHECKING:
@@ -90,8 +97,9 @@ class DenseCholesky:
 
 @dataclass(frozen=True)
 class BandCholesky:
-    """Systems in `layout`'s band storage `[B, N, u + 1]` (`LevelLayout.band_entries`), by LAPACK's
-    band Cholesky. `solve` factorises `bands` in place; `pristine` keeps H for shifted retries."""
+    """Systems in `layout`'s band storage `[B, N, u + 1]` (`LevelLayout.band_entries`), by band
+    Cholesky (`solve_bands`). `solve` may factorise `bands` in place; `pristine` keeps H for shifted
+    retries."""
 
     bands: Tensor
     layout: LevelLayout
@@ -99,8 +107,12 @@ class BandCholesky:
 
     @staticmethod
     def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
-        """The system of `bands`; `keep`: copy H first, so that `shifted` can read it."""
-        return BandCholesky(bands, layout, bands.clone() if keep else None)
+        """The system of `bands`; `keep`: keep H, so that `shifted` can read it (a copy where the
+        solve overwrites `bands`; the batched C kernel only reads them, and a copy of 64 worms'
+        Hessians took half a millisecond a Newton iteration)."""
+        if not keep:
+            return BandCholesky(bands, layout)
+        return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone())
 
     @staticmethod
     def from_dense(matrices: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
