@@ -107,9 +107,9 @@ class BandCholesky:
 
     @staticmethod
     def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
-        """The system of `bands`; `keep`: keep H, so that `shifted` can read it (a copy where the
-        solve overwrites `bands`; the batched C kernel only reads them, and a copy of 64 worms'
-        Hessians took half a millisecond a Newton iteration)."""
+        """The system of `bands`; `keep`: keep H, so that `shifted` can read it: a copy where the
+        solve overwrites `bands` (LAPACK), `bands` themselves where the batched C kernel solves,
+        which only reads them (no copy of the whole batch's Hessians every Newton iteration)."""
         if not keep:
             return BandCholesky(bands, layout)
         return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone())
