@@ -80,6 +80,54 @@ def test_the_tiles_solve_the_worms_newton_systems_as_dense_algebra(batch: int, s
         assert float((solution[entry] - expected).norm() / expected.norm()) < RTOL
 
 
+# float32 solves of the worm's systems (condition numbers near 5e4) land within about 1e-5 of float64's
+SINGLE_RTOL = 1e-3
+
+
+@needs_compiler
+@pytest.mark.parametrize("batch", [3, 9])
+def test_single_precision_tiles_solve_the_worms_systems_to_float32_accuracy(batch: int) -> None:
+    # eight systems a tile: 9 fills two, the second with seven identity lanes; entry 1 is indefinite
+    noise = [1e-4 * entry for entry in range(batch)]
+    noise[1] = 3e-3
+    dense, bands, layout = _worm_systems(noise)
+    bands = _batch_last_view(bands, spare=3)
+    definite = (torch.linalg.cholesky_ex(dense).info == 0).tolist()
+    assert not definite[1]
+    rhs = torch.randn(batch, dense.shape[-1], generator=torch.Generator().manual_seed(11), dtype=dense.dtype)
+    kept = bands.clone()
+    solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library(), single=True)
+    assert torch.equal(bands, kept) and solution.dtype == torch.float64
+    assert solved.tolist() == definite
+    for entry in range(batch):
+        if not definite[entry]:
+            assert bool((solution[entry] == 0).all())
+            continue
+        expected = torch.linalg.solve(dense[entry], rhs[entry])
+        assert float((solution[entry] - expected).norm() / expected.norm()) < SINGLE_RTOL
+
+
+@needs_compiler
+def test_a_system_singular_in_float32_is_solved_again_in_float64() -> None:
+    # [[1, 1], [1, 1 + 1e-9]] in two neighbouring DOFs: positive definite, but 1 + 1e-9 rounds to 1
+    # in float32, which leaves a zero pivot; the verdict and the solution must be float64's
+    _, bands, layout = _worm_systems([0.0, 1e-4, 2e-4])
+    size = bands.shape[1]
+    nearly = torch.zeros_like(bands)
+    nearly[..., 0] = 1.0
+    nearly[1, 10, 1] = 1.0  # A[p(11), p(10)]
+    nearly[1, 11, 0] = 1.0 + 1e-9
+    matrix = torch.eye(size, dtype=bands.dtype)  # entry 1 in band order
+    matrix[10, 11] = matrix[11, 10] = 1.0
+    matrix[11, 11] = 1.0 + 1e-9
+    rhs = torch.randn(3, size, generator=torch.Generator().manual_seed(12), dtype=bands.dtype)
+    solution, solved = banded.solve_bands_in_tiles(nearly, rhs, layout, native.library(), single=True)
+    assert solved.tolist() == [True, True, True]
+    expected = torch.linalg.solve(matrix, rhs[1, layout.band_order])
+    assert float((solution[1, layout.band_order] - expected).norm() / expected.norm()) < 1e-4
+    torch.testing.assert_close(solution[[0, 2]], rhs[[0, 2]], rtol=1e-6, atol=0.0)
+
+
 @needs_compiler
 def test_a_nan_system_fails_alone_and_leaves_its_tile_mates_exact() -> None:
     dense, bands, layout = _worm_systems([0.0, 1e-4, 2e-4, 3e-4])

@@ -214,6 +214,8 @@ def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> Non
 def test_unknown_direct_method_is_refused() -> None:
     with pytest.raises(ValueError, match="direct"):
         es.NewtonCG(direct="sparse")
+    with pytest.raises(ValueError, match="factor_precision"):
+        es.NewtonCG(factor_precision="half")
 
 
 def test_batched_backward_through_the_level_solve_equals_single_entries() -> None:

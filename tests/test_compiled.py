@@ -15,6 +15,7 @@ from energysim.contact.obstacles import CCD_SAFETY
 from energysim.creatures import load_creature, resting_state
 from energysim.integrators.adjoint import step_terms
 from energysim.integrators.common import state_energies
+from energysim.linalg import native
 from energysim.objective import compiled
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.objective import Objective
@@ -315,6 +316,25 @@ def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one()
     error = (direction - eager).flatten(1).norm(dim=1) / eager.flatten(1).norm(dim=1)
     assert float(error.max()) < 1e-8
     assert bool(((direction * gradient).sum(dim=(1, 2)) < 0).all())
+
+
+@pytest.mark.skipif(native.library() is None, reason="no C band kernels on this machine")
+def test_float32_band_factors_give_the_float64_newton_step_to_float32_accuracy():
+    # `factor_precision="single"`: only the factorisation is float32; the shifted retries of the
+    # indefinite entries pick the same τ, and the steps stay downhill
+    _, objective, x = _worm_objective(batch=4)
+    objective.compiled = True
+    _, gradient = objective.energy_and_gradient(x)
+    wanted = torch.ones(4, dtype=torch.bool)
+    directions = {}
+    for precision in ("double", "single"):
+        solver = es.NewtonCG(direct="banded", indefinite="shift", compile=True, factor_precision=precision)
+        directions[precision], solved = solver._compiled_direct(objective, -gradient, x, wanted)
+        assert solved.tolist() == [True] * 4
+    double, single = directions["double"], directions["single"]
+    error = (single - double).flatten(1).norm(dim=1) / double.flatten(1).norm(dim=1)
+    assert float(error.max()) < 1e-3
+    assert bool(((single * gradient).sum(dim=(1, 2)) < 0).all())
 
 
 def test_a_compiled_walk_takes_the_same_steps_as_an_eager_one():

@@ -78,43 +78,59 @@ def solve_keeps_bands(bands: Tensor) -> bool:
     )
 
 
-def solve_bands(bands: Tensor, rhs: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor]:
+def solve_bands(
+    bands: Tensor, rhs: Tensor, layout: LevelLayout, *, single: bool = False
+) -> tuple[Tensor, Tensor]:
     """`band_cholesky_solve` from the matrices already in the layout's band storage, `bands`
     `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` may
     be overwritten by the factors.
 
     Batches of float64 systems take the C kernel that factorises four at once (`solve_bands_in_tiles`)
-    where it is built; the rest, LAPACK one matrix at a time."""
+    where it is built, eight at once in float32 with `single`; the rest, LAPACK one matrix at a
+    time in the bands' own precision."""
     if solve_keeps_bands(bands):
-        return solve_bands_in_tiles(bands, rhs, layout, native.library())
+        return solve_bands_in_tiles(bands, rhs, layout, native.library(), single=single)
     return substitute_bands(factorise_bands(bands), rhs, layout)
 
 
 def solve_bands_in_tiles(
-    bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL
+    bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL, *, single: bool = False
 ) -> tuple[Tensor, Tensor]:
-    """`solve_bands` by the C kernel of `energysim.linalg.native` (float64, CPU), four systems to a
-    tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands where
-    they lie (`_band_strides`); batch-last storage, the compiled band Hessian's transposed view, it
-    gathers four systems at a time. `bands` is left unchanged."""
+    """`solve_bands` by the C kernel of `energysim.linalg.native` (float64 bands, CPU), four systems
+    to a tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands
+    where they lie (`_band_strides`); batch-last storage, the compiled band Hessian's transposed
+    view, it gathers a tile's systems at a time. `bands` is left unchanged.
+
+    `single`: factorise and solve in float32, eight systems to a tile, the bands rounded as the
+    kernel gathers them; the solutions are returned in the bands' precision. Which systems are
+    positive definite stays float64's verdict: those float32 finds not positive definite are solved
+    again in float64 (rounding can tip a nearly singular matrix either way)."""
     batch, size, width = bands.shape
-    tiles = -(-batch // TILE)
+    lanes = 2 * TILE if single else TILE
+    real = torch.float32 if single else bands.dtype
+    tiles = -(-batch // lanes)
     storage, entry_stride, batch_stride = _band_strides(bands)
-    # the right-hand sides as the tiles' lanes `[tiles, N, 4]`, zero past the batch
-    padded = rhs.new_zeros(tiles * TILE, size)
+    # the right-hand sides as the tiles' lanes `[tiles, N, lanes]`, zero past the batch
+    padded = rhs.new_zeros(tiles * lanes, size, dtype=real)
     padded[:batch] = rhs[:, layout.band_order]
-    values = padded.reshape(tiles, TILE, size).transpose(1, 2).contiguous()
-    positive_definite = torch.ones(tiles * TILE, dtype=torch.uint8)
-    work = torch.empty(size * width * TILE, dtype=bands.dtype)
-    kernels.band_solve_tiles(
+    values = padded.reshape(tiles, lanes, size).transpose(1, 2).contiguous()
+    positive_definite = torch.ones(tiles * lanes, dtype=torch.uint8)
+    work = torch.empty(size * width * lanes, dtype=real)
+    kernel = kernels.band_solve_tiles_single if single else kernels.band_solve_tiles
+    kernel(
         storage.data_ptr(), entry_stride, batch_stride, batch, size, width,
         values.data_ptr(), positive_definite.data_ptr(), work.data_ptr(),
     )
     solved = positive_definite[:batch].bool()
-    in_order = values.permute(0, 2, 1).reshape(tiles * TILE, size)[:batch]
+    in_order = values.permute(0, 2, 1).reshape(tiles * lanes, size)[:batch].to(rhs.dtype)
     solution = torch.zeros_like(rhs)
     # a lane that failed holds whatever its unit pivots made of it: zero, as LAPACK's path leaves it
     solution[:, layout.band_order] = torch.where(solved[:, None], in_order, 0.0)
+    if single and not bool(solved.all()):
+        rows = torch.nonzero(~solved).reshape(-1)
+        again, again_solved = solve_bands_in_tiles(bands[rows], rhs[rows], layout, kernels)
+        solution = solution.index_copy(0, rows, again)
+        solved = solved.index_copy(0, rows, again_solved)
     return solution, solved
 
 

@@ -104,15 +104,16 @@ class BandCholesky:
     bands: Tensor
     layout: LevelLayout
     pristine: Tensor | None = None
+    single: bool = False  # factorise in float32 where the C kernel solves (`solve_bands`)
 
     @staticmethod
-    def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
+    def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False, single: bool = False) -> BandCholesky:
         """The system of `bands`; `keep`: keep H, so that `shifted` can read it: a copy where the
         solve overwrites `bands` (LAPACK), `bands` themselves where the batched C kernel solves,
         which only reads them (no copy of the whole batch's Hessians every Newton iteration)."""
         if not keep:
-            return BandCholesky(bands, layout)
-        return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone())
+            return BandCholesky(bands, layout, single=single)
+        return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone(), single)
 
     @staticmethod
     def from_dense(matrices: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
@@ -122,7 +123,9 @@ class BandCholesky:
         return BandCholesky.of(bands, layout, keep=keep)
 
     def solve(self, rhs: Tensor, wanted: Tensor) -> tuple[Tensor, Tensor]:
-        solution, positive_definite = solve_bands(self.bands, rhs.reshape(rhs.shape[0], -1), self.layout)
+        solution, positive_definite = solve_bands(
+            self.bands, rhs.reshape(rhs.shape[0], -1), self.layout, single=self.single
+        )
         return _band_result(solution, positive_definite, rhs, wanted)
 
     def shifted(self, rows: Tensor, shift: float) -> BandCholesky:
@@ -130,7 +133,7 @@ class BandCholesky:
             raise ValueError("BandCholesky.shifted needs the matrix kept: build it with keep=True")
         bands = self.pristine[rows].clone()
         bands[..., 0] += shift * bands[..., 0].abs()  # column 0 holds the diagonal
-        return BandCholesky(bands, self.layout)
+        return BandCholesky(bands, self.layout, single=self.single)
 
 
 def _band_result(
@@ -298,17 +301,18 @@ def eager_system(
 
 
 def compiled_system(
-    plan: LinearSolvePlan, objective: Objective, like: Tensor, *, keep: bool = False
+    plan: LinearSolvePlan, objective: Objective, like: Tensor, *, keep: bool = False, single: bool = False
 ) -> DirectSolve | None:
     """The direct system of a compiled `plan` (`LinearSolvePlan.compiled`), from the Hessian the
     objective's compiled function assembles straight into the plan's storage (`Objective.dense_hessian`,
-    `band_hessian`, `level_hessian`) at `like`; None where it has none. `keep`: as for `eager_system`."""
+    `band_hessian`, `level_hessian`) at `like`; None where it has none. `keep`: as for `eager_system`;
+    `single`: band systems factorise in float32 where the C kernel solves them (`solve_bands`)."""
     if plan.method == "levels":
         levels = objective.level_hessian(like, plan.layout)
         return None if levels is None else LevelCholesky(*levels, plan.layout)
     if plan.layout is not None:
         bands = objective.band_hessian(like, plan.layout)
-        return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep)
+        return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep, single=single)
     dense = objective.dense_hessian(like)
     return None if dense is None else DenseCholesky(dense)
 

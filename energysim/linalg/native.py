@@ -28,6 +28,9 @@ from pathlib import Path
 import torch
 
 SOURCE = "band_tiles.c"
+# the builds of `SOURCE` in one library: its preprocessor definitions per precision (double: the
+# file's default; single: `band_solve_tiles_single`, eight systems a vector)
+PRECISIONS: dict[str, tuple[str, ...]] = {"double": (), "single": ("-DREAL=float", "-DSUFFIX=_single")}
 # a build that takes longer is abandoned and the fallback path taken (it takes ~0.3 s)
 BUILD_TIMEOUT_S = 120.0
 
@@ -87,8 +90,10 @@ def _build() -> Path:
     if cc is None:
         raise RuntimeError("no C compiler (cc, gcc or clang) on the PATH; set CC to name one")
     source = resources.files("energysim.linalg").joinpath(SOURCE).read_text(encoding="utf-8")
-    flags = ["-O3", "-std=c99", "-fPIC", "-shared", *architecture_flags()]
-    key = hashlib.sha256("\0".join([source, cc, *flags, platform.machine()]).encode()).hexdigest()[:16]
+    flags = ["-O3", "-std=c99", "-fPIC", *architecture_flags()]
+    defines = [define for variant in PRECISIONS.values() for define in variant]
+    identity = "\0".join([source, cc, *flags, *defines, platform.machine()])
+    key = hashlib.sha256(identity.encode()).hexdigest()[:16]
     target = cache_dir() / f"band_tiles-{key}.so"
     if target.exists():
         return target
@@ -97,16 +102,24 @@ def _build() -> Path:
         source_path = Path(scratch) / SOURCE
         source_path.write_text(source, encoding="utf-8")
         built = Path(scratch) / target.name
-        command = [cc, *flags, str(source_path), "-o", str(built), "-lm"]
-        result = subprocess.run(command, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-        if result.returncode != 0:
-            raise RuntimeError(f"{' '.join(command)} failed: {result.stderr.strip()[-500:]}")
+        # the source once per precision (`PRECISIONS`), linked into one library
+        objects = [str(Path(scratch) / f"{name}.o") for name in PRECISIONS]
+        commands = [
+            [cc, *flags, *defines, "-c", str(source_path), "-o", obj]
+            for defines, obj in zip(PRECISIONS.values(), objects, strict=True)
+        ]
+        commands.append([cc, *flags, "-shared", *objects, "-o", str(built), "-lm"])
+        for command in commands:
+            result = subprocess.run(command, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+            if result.returncode != 0:
+                raise RuntimeError(f"{' '.join(command)} failed: {result.stderr.strip()[-500:]}")
         os.replace(built, target)
     return target
 
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     pointer, size = ctypes.c_void_p, ctypes.c_long
-    lib.band_solve_tiles.argtypes = [pointer, size, size, size, size, size, pointer, pointer, pointer]
-    lib.band_solve_tiles.restype = None
+    for name in ("band_solve_tiles", "band_solve_tiles_single"):
+        getattr(lib, name).argtypes = [pointer, size, size, size, size, size, pointer, pointer, pointer]
+        getattr(lib, name).restype = None
     return lib
