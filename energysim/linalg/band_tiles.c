@@ -42,7 +42,7 @@ static inline lanes load(const REAL *p) {
 
 static inline void store(REAL *p, lanes x) { memcpy(p, &x, sizeof x); }
 
-/* Factorise one tile `[n, w, 4]` in place; ok[lane] is set to 0 where that matrix is not positive
+/* Factorise one tile `[n, w, LANES]` in place; ok[lane] is set to 0 where that matrix is not positive
  * definite (a pivot not > 0, NaN included). Such a lane goes on with a unit pivot so that its
  * factor stays finite where it can; the caller discards it. */
 static void factor_tile(REAL *restrict tile, long n, long w, unsigned char *restrict ok) {
@@ -102,7 +102,7 @@ static void factor_tile(REAL *restrict tile, long n, long w, unsigned char *rest
 }
 
 /* Solve L Lᵀ x = b for one tile, with `tile` its factors (factor_tile) and `v` the right-hand sides
- * [n, 4] on entry, the solutions on return. */
+ * [n, LANES] on entry, the solutions on return. */
 static void substitute_tile(const REAL *restrict tile, REAL *restrict v, long n, long w) {
   const long column = w * LANES;
   for (long j = 0; j < n; ++j) { /* forward: L y = b, column by column */

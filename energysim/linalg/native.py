@@ -105,8 +105,8 @@ def _build() -> Path:
         # the source once per precision (`PRECISIONS`), linked into one library
         objects = [str(Path(scratch) / f"{name}.o") for name in PRECISIONS]
         commands = [
-            [cc, *flags, *defines, "-c", str(source_path), "-o", obj]
-            for defines, obj in zip(PRECISIONS.values(), objects, strict=True)
+            [cc, *flags, *variant, "-c", str(source_path), "-o", obj]
+            for variant, obj in zip(PRECISIONS.values(), objects, strict=True)
         ]
         commands.append([cc, *flags, "-shared", *objects, "-o", str(built), "-lm"])
         for command in commands:
