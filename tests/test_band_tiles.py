@@ -48,6 +48,21 @@ def _batch_last_view(bands: torch.Tensor, spare: int) -> torch.Tensor:
     return wide[:, :batch].T.reshape(bands.shape)
 
 
+def _assert_dense_solutions(
+    solution: torch.Tensor, solved: torch.Tensor, dense: torch.Tensor, rhs: torch.Tensor, rtol: float
+) -> None:
+    """The band solve solved exactly the positive definite systems of `dense`, each as float64 dense
+    algebra does to `rtol`, and left the others zero."""
+    definite = (torch.linalg.cholesky_ex(dense).info == 0).tolist()
+    assert solved.tolist() == definite
+    for entry, positive in enumerate(definite):
+        if not positive:
+            assert bool((solution[entry] == 0).all())
+            continue
+        expected = torch.linalg.solve(dense[entry], rhs[entry])
+        assert float((solution[entry] - expected).norm() / expected.norm()) < rtol
+
+
 @needs_compiler
 @pytest.mark.parametrize("storage", ["batch-major", "batch-last", "padded columns"])
 @pytest.mark.parametrize("batch", [2, 5, 8])
@@ -71,13 +86,7 @@ def test_the_tiles_solve_the_worms_newton_systems_as_dense_algebra(batch: int, s
     kept = bands.clone()
     solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library())
     assert torch.equal(bands, kept)  # the kernel only reads the caller's storage
-    assert solved.tolist() == definite
-    for entry in range(batch):
-        if not definite[entry]:
-            assert bool((solution[entry] == 0).all())
-            continue
-        expected = torch.linalg.solve(dense[entry], rhs[entry])
-        assert float((solution[entry] - expected).norm() / expected.norm()) < RTOL
+    _assert_dense_solutions(solution, solved, dense, rhs, RTOL)
 
 
 # float32 solves of the worm's systems (condition numbers near 5e4) land within about 1e-5 of float64's
@@ -98,13 +107,7 @@ def test_single_precision_tiles_solve_the_worms_systems_to_float32_accuracy(batc
     kept = bands.clone()
     solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library(), single=True)
     assert torch.equal(bands, kept) and solution.dtype == torch.float64
-    assert solved.tolist() == definite
-    for entry in range(batch):
-        if not definite[entry]:
-            assert bool((solution[entry] == 0).all())
-            continue
-        expected = torch.linalg.solve(dense[entry], rhs[entry])
-        assert float((solution[entry] - expected).norm() / expected.norm()) < SINGLE_RTOL
+    _assert_dense_solutions(solution, solved, dense, rhs, SINGLE_RTOL)
 
 
 @needs_compiler
