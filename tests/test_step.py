@@ -10,8 +10,11 @@ import torch
 from conftest import small_box
 
 import energysim as es
+from energysim.creatures import resting_state
 from energysim.fem.kinematics import deformation_gradient
 from energysim.fem.materials import stable_neo_hookean_density
+from energysim.integrators.adjoint import step_terms
+from energysim.integrators.implicit_stage import rows_of
 from energysim.objective.derivatives import energy_and_gradient
 
 SOLVERS = {
@@ -273,3 +276,41 @@ def test_solve_static_finds_a_stationary_point_of_the_potential():
     loose = es.solve_static(scene, solver=es.LBFGS(tol=1e-4, max_iter=20000))
     assert loose.stats.converged, loose.stats.summary()
     assert float(loose.state[:, 1].min()) == pytest.approx(tip_sag, rel=1e-3)
+
+
+def test_a_step_objective_sliced_to_some_entries_equals_one_built_for_them() -> None:
+    # a solver restricts a step to the entries still iterating (compaction, lone backtracking): the
+    # inertia and the lagged friction and viscosity slice their per-entry data (`EnergyTerm.rows`)
+    # instead of being built again from those entries' state; both must be the same objective
+    scene = es.load_creature("worm").scene(1 / 60, 0.8)
+    scene.add(es.Viscosity(30.0))
+    generator = torch.Generator().manual_seed(4)
+    state = resting_state(scene).expand(4, -1)
+    x, v = scene.split_state(state)
+    v = v + 0.05 * torch.randn(v.shape, generator=generator, dtype=v.dtype)
+    action = 2 * torch.rand(4, 10, generator=generator, dtype=x.dtype) - 1
+    anchor = x + scene.dt * v
+
+    def built(xp: torch.Tensor, vp: torch.Tensor, act: torch.Tensor, at: torch.Tensor) -> es.Objective:
+        terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, xp, vp, scene.free, at)
+        return es.Objective(terms, scene.free, scene.dt / scene.vertex_mass, act, at)
+
+    rows = torch.tensor([3, 1])
+    sliced = rows_of(built(x, v, action, anchor), scene.terms, rows)
+    rebuilt = built(x[rows], v[rows], action[rows], anchor[rows])
+    kinds = [type(term).__name__ for term in sliced.terms]
+    assert kinds == [type(term).__name__ for term in rebuilt.terms]
+    assert {"Inertia", "LaggedFriction", "LaggedViscosity"} <= set(kinds)
+    probe = x[rows] + 1e-4 * torch.randn(x[rows].shape, generator=generator, dtype=x.dtype)
+    pairs = zip(sliced.energy_and_gradient(probe), rebuilt.energy_and_gradient(probe), strict=True)
+    for got, expected in pairs:
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=0.0)
+    got, expected = (objective.hessian(probe).dense(probe) for objective in (sliced, rebuilt))
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12 * float(expected.abs().max()))
+
+
+def test_a_term_refuses_to_slice_a_registered_buffer() -> None:
+    # `_with` copies a term shallowly: a registered buffer would stay shared with the original
+    ground = es.Ground(friction=0.8)
+    with pytest.raises(ValueError, match="normal"):
+        ground._with(normal=torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))

@@ -100,6 +100,14 @@ class LaggedFriction(ElementEnergy):
         # a tensor, like the inertia's M/h²: compiled evaluations then need no new graph for a new h
         self.smoothing = torch.as_tensor(smoothing, dtype=normals.dtype, device=normals.device)
 
+    def rows(self, entries: Tensor) -> LaggedFriction:
+        """This step's friction for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
+        return self._with(
+            previous_positions=self.previous_positions[entries],
+            projector=self.projector[entries],
+            weight=self.weight[entries],
+        )
+
     def _slip(self, element_positions: Tensor) -> Tensor:
         displacement = element_positions[..., 0, :] - self.previous_positions
         return small_matmul(self.projector, displacement[..., None])[..., 0]

@@ -21,6 +21,7 @@ flag), so a term that declares a kernel must implement it, and one that does not
 
 from __future__ import annotations
 
+import copy
 import weakref
 
 import torch
@@ -101,6 +102,25 @@ class EnergyTerm(nn.Module):
         start, `[B, n, d]` (friction, whose normal forces are taken there); none unless the class
         declares `has_lagged_terms`."""
         return []
+
+    def rows(self, entries: Tensor) -> EnergyTerm | None:
+        """This step term for the batch entries `entries` (indices `[k]`) alone, sliced from its own
+        per-entry data, or None where the term cannot slice itself (the step then builds the term
+        again from the entries' state). Terms that hold per-entry data (the inertia, lagged
+        friction and viscosity) implement it: a solver restricts the step to the entries still
+        iterating several times a step, and slicing costs a few index operations where building
+        computes the lagged data anew."""
+        return None
+
+    def _with(self, **attributes: Tensor) -> EnergyTerm:
+        # a shallow copy of this term with `attributes` replaced; only plain tensor attributes (not
+        # registered buffers or parameters, which the copy would share with this term)
+        part = copy.copy(self)
+        for name, value in attributes.items():
+            if name in self._buffers or name in self._parameters:
+                raise ValueError(f"{type(self).__name__}.{name} is registered: a copy would share it")
+            part.__dict__[name] = value
+        return part
 
     @property
     def num_actuators(self) -> int:

@@ -53,6 +53,11 @@ class Inertia(VertexDiagonalEnergy):
             gradient = self.mass_per_dt_squared[:, None] * (x - self.predicted_positions)
             return self.forward(x), gradient
 
+    def rows(self, entries: Tensor) -> Inertia:
+        """The inertia of the batch entries `entries` alone (see `EnergyTerm.rows`)."""
+        anchor = None if self.anchor is None else self.anchor[entries]
+        return self._with(predicted_positions=self.predicted_positions[entries], anchor=anchor)
+
     def hessian_diagonal(self) -> Tensor:
         """The (constant, diagonal) Hessian M/h², per vertex, shape `[n]`, in kg/s²."""
         return self.mass_per_dt_squared

@@ -152,6 +152,13 @@ class LaggedViscosity(ElementEnergy):
         step = torch.as_tensor(dt, dtype=start_gradient.dtype, device=start_gradient.device)
         self.weight = viscosity.viscosity * viscosity.rest_volume / step
 
+    def rows(self, entries: Tensor) -> LaggedViscosity:
+        """This step's viscosity for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
+        return self._with(
+            start_gradient=self.start_gradient[entries],
+            start_gradient_t=self.start_gradient_t[..., entries].contiguous(),
+        )
+
     def _strain(self, element_positions: Tensor) -> Tensor:
         change = deformation_gradient(element_positions, self.rest_edge_inverse) - self.start_gradient
         return strain_rate(self.start_gradient, change)

@@ -3,9 +3,12 @@ starts (`warm_start`) and the differentiable argmin of one stage (`stage`)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 
+from energysim.energies.base import EnergyTerm
 from energysim.integrators.adjoint import ImplicitStep, step_terms, unrolled_step
 from energysim.integrators.common import any_limits_steps
 from energysim.model.scene import Scene
@@ -50,6 +53,22 @@ def warm_start(objective: Objective, predicted: Tensor, x_prev: Tensor, dt: floa
         best = torch.where(better[:, None, None], candidate, best)
         best_energy = torch.where(better, energy, best_energy)
     return best
+
+
+def rows_of(objective: Objective, scene_terms: Sequence[EnergyTerm], entries: Tensor) -> Objective | None:
+    """The step objective of the batch entries `entries` alone, sliced from `objective`: the scene's
+    terms hold no per-entry data and serve as they are, the step's own terms slice themselves
+    (`EnergyTerm.rows`); None where one cannot."""
+    shared = {id(term) for term in scene_terms}
+    terms = []
+    for term in objective.terms:
+        part = term if id(term) in shared else term.rows(entries)
+        if part is None:
+            return None
+        terms.append(part)
+    action = None if objective.action is None else objective.action[entries]
+    anchor = None if objective.anchor is None else objective.anchor[entries]
+    return Objective(terms, objective.free, objective.residual_scale, action, anchor)
 
 
 GRAD_MODES = ("implicit", "unrolled")
@@ -98,6 +117,9 @@ def solve_stage(
             objective.anchor = start
 
             def subset(entries: Tensor) -> Objective:
+                sliced = rows_of(objective, scene.terms, entries)
+                if sliced is not None:
+                    return sliced
                 return objective_of(
                     xp[entries], vp[entries], None if act is None else act[entries], start[entries]
                 )
