@@ -20,7 +20,7 @@ from energysim.linalg.block_tridiagonal import (
     to_levels,
     vertex_levels,
 )
-from energysim.linalg.linear_solve import INDEFINITE_SHIFTS, choose
+from energysim.linalg.linear_solve import INDEFINITE_SHIFTS, choose, level_layout_of
 from energysim.objective.objective import Objective
 
 RTOL = 1e-10
@@ -196,7 +196,6 @@ def test_band_solve_is_exact_and_refuses_an_indefinite_entry() -> None:
 
 def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> None:
     scene, state, action = _worm_batch([0.0] * 16)
-    solver = es.NewtonCG()
     for batch, method in ((1, "banded"), (16, "levels")):
         objective, x = _objective(scene, state[:batch], action[:batch])
         groups = [elements for elements, _ in objective.hessian(x).blocks]
@@ -204,7 +203,7 @@ def test_auto_picks_band_for_one_worm_on_the_cpu_and_levels_for_a_batch() -> Non
         # a compiled Hessian is assembled in band storage: the band path for any batch
         assert choose(groups, x, compiled_max_dofs=5000).method == "banded"
     # LAPACK's band routines are CPU only: elsewhere one worm is factorised dense
-    layout = solver._layout(groups, x[:1])
+    layout = level_layout_of(groups, x[:1])
     for compiled in (False, True):
         assert not prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cuda"), compiled=compiled)
     assert prefer_band(layout, 1, x.shape[1] * x.shape[2], torch.device("cpu"))

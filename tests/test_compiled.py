@@ -16,6 +16,7 @@ from energysim.creatures import load_creature, resting_state
 from energysim.integrators.adjoint import step_terms
 from energysim.integrators.common import state_energies
 from energysim.linalg import native
+from energysim.linalg.linear_solve import level_layout_of
 from energysim.objective import compiled
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.objective import Objective
@@ -166,7 +167,7 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
     # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated.
     # A batch of `BATCH_LAST_MIN_BATCH` takes the batch-last entries (`energysim.fem.hessian_entries`)
     scene, objective, x = _pinned_worm_objective(pinned, batch)
-    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    layout = level_layout_of(objective.element_groups(), x)
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
     bands = objective.band_hessian(x, layout)
@@ -197,7 +198,7 @@ def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(ba
         "Inertia",
         "LaggedViscosity",
     }
-    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    layout = level_layout_of(objective.element_groups(), x)
     generator = torch.Generator().manual_seed(1)
     positions = [x, x + 2e-4 * torch.randn(x.shape, generator=generator, dtype=x.dtype), x]
     expected = []
@@ -256,7 +257,7 @@ def test_the_compiled_level_hessian_equals_the_dense_one_in_level_blocks(pinned:
     # assembled straight into the block-tridiagonal solve's level blocks (its path on a GPU): the
     # worm's levels are padded (not all hold S DOFs), and fixed DOFs are eliminated
     _, objective, x = _pinned_worm_objective(pinned)
-    layout = es.NewtonCG()._layout(objective.element_groups(), x)
+    layout = level_layout_of(objective.element_groups(), x)
     assert layout.num_levels * layout.level_size > x.shape[1] * 3  # some padding
     dense = objective.hessian(x).dense(x)
     objective.compiled = True

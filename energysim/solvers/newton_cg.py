@@ -35,7 +35,6 @@ from energysim.linalg.linear_solve import (
     choose,
     compiled_system,
     eager_system,
-    level_layout_of,
     solve_with_shifts,
 )
 from energysim.objective.derivatives import HessianOperator
@@ -113,11 +112,9 @@ class NewtonCG(Solver):
             changes slowly (a swinging beam). The factors are kept by this solver object, per batch
             size and M/h² (`KEPT_FACTORISATIONS` of them), and entries are matched by their row in
             the batch: results depend on what the solver solved before, within `tol`.
-        factor_precision: "double" (default) or "single": on the compiled band path where the C
-            kernel solves (`compile=True`, CPU, float64, batches of 3 or more) factorise H in float32,
-            eight systems a SIMD vector instead of four (`solve_bands_in_tiles`). Only the Newton
-            direction is rounded: the residual, the line search and the verdict on positive
-            definiteness stay float64, and the solve stops on the same `tol`. The RL envs use it.
+        factor_precision: "single" factorises H in float32 where the C band kernel solves
+            (`compile=True`, CPU, batches of 3 or more; `solve_bands_in_tiles`): only the direction
+            is rounded, the residual and line search stay float64. The RL envs use it.
     """
 
     max_iter: int = 100
@@ -392,10 +389,6 @@ class NewtonCG(Solver):
             max_dofs=self.direct_limit(),
             compiled_max_dofs=self.direct_limit(compiled_band=True) if compiled else None,
         )
-
-    def _layout(self, element_groups: list[Tensor], x: Tensor) -> LevelLayout:
-        # the level layout the band and level solves order the DOFs by
-        return level_layout_of(element_groups, x)
 
     def _preconditioner(
         self, operator: HessianOperator, x: Tensor, objective: Objective
