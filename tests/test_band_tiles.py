@@ -94,18 +94,21 @@ SINGLE_RTOL = 1e-3
 
 
 @needs_compiler
+@pytest.mark.parametrize("given", ["float64, single", "float32"])
 @pytest.mark.parametrize("batch", [3, 9])
-def test_single_precision_tiles_solve_the_worms_systems_to_float32_accuracy(batch: int) -> None:
-    # eight systems a tile: 9 fills two, the second with seven identity lanes; entry 1 is indefinite
+def test_single_precision_tiles_solve_the_worms_systems_to_float32_accuracy(batch: int, given: str) -> None:
+    # eight systems a tile: 9 fills two, the second with seven identity lanes; entry 1 is indefinite.
+    # float64 bands with `single`, or float32 bands (the compiled float32 Hessian's), which imply it
     noise = [1e-4 * entry for entry in range(batch)]
     noise[1] = 3e-3
     dense, bands, layout = _worm_systems(noise)
-    bands = _batch_last_view(bands, spare=3)
+    bands = _batch_last_view(bands if given != "float32" else bands.float(), spare=3)
     definite = (torch.linalg.cholesky_ex(dense).info == 0).tolist()
     assert not definite[1]
     rhs = torch.randn(batch, dense.shape[-1], generator=torch.Generator().manual_seed(11), dtype=dense.dtype)
     kept = bands.clone()
-    solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library(), single=True)
+    assert banded.solve_keeps_bands(bands)
+    solution, solved = banded.solve_bands(bands, rhs, layout, single=given != "float32")
     assert torch.equal(bands, kept) and solution.dtype == torch.float64
     _assert_dense_solutions(solution, solved, dense, rhs, SINGLE_RTOL)
 

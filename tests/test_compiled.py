@@ -320,18 +320,20 @@ def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one()
 
 
 @pytest.mark.skipif(native.library() is None, reason="no C band kernels on this machine")
-def test_float32_band_factors_give_the_float64_newton_step_to_float32_accuracy():
-    # `factor_precision="single"`: only the factorisation is float32; the shifted retries of the
-    # indefinite entries pick the same τ, and the steps stay downhill
-    _, objective, x = _worm_objective(batch=4)
+@pytest.mark.parametrize("batch", [4, BATCH_LAST_MIN_BATCH])
+def test_float32_band_factors_give_the_float64_newton_step_to_float32_accuracy(batch: int):
+    # `factor_precision="single"`: the Hessian and its factorisation are float32 (the Hessian
+    # element-major, then batch-last); the shifted retries of the indefinite entries pick the same
+    # τ, and the steps stay downhill
+    _, objective, x = _worm_objective(batch=batch)
     objective.compiled = True
     _, gradient = objective.energy_and_gradient(x)
-    wanted = torch.ones(4, dtype=torch.bool)
+    wanted = torch.ones(batch, dtype=torch.bool)
     directions = {}
     for precision in ("double", "single"):
         solver = es.NewtonCG(direct="banded", indefinite="shift", compile=True, factor_precision=precision)
         directions[precision], solved = solver._compiled_direct(objective, -gradient, x, wanted)
-        assert solved.tolist() == [True] * 4
+        assert solved.tolist() == [True] * batch
     double, single = directions["double"], directions["single"]
     error = (single - double).flatten(1).norm(dim=1) / double.flatten(1).norm(dim=1)
     assert float(error.max()) < 1e-3

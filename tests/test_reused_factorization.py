@@ -27,9 +27,9 @@ def _count_hessians(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     calls = [0]
     band_hessian = Objective.band_hessian
 
-    def counted(self: Objective, *args: object) -> object:
+    def counted(self: Objective, *args: object, **options: object) -> object:
         calls[0] += 1
-        return band_hessian(self, *args)
+        return band_hessian(self, *args, **options)
 
     monkeypatch.setattr(Objective, "band_hessian", counted)
     return calls

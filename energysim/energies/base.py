@@ -13,7 +13,8 @@ What else a term offers is declared once, by its class, never probed at run time
   `StepLimitingEnergy` (a barrier that bounds how far a step may go: obstacles),
   `DissipativeEnergy` (no stored energy, a velocity-dependent force: viscosity);
 - its kernels and hooks, by class flags: `is_linear`, `has_constant_hessian`, `has_gradient_kernel`,
-  `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `is_actuated`.
+  `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `is_actuated`,
+  `is_translation_invariant`.
 
 The solvers, the compiled evaluations and the integrators ask only these (`isinstance` or the
 flag), so a term that declares a kernel must implement it, and one that does not is never asked.
@@ -43,6 +44,10 @@ class EnergyTerm(nn.Module):
             compiled evaluations call only terms that declare it.
         has_lagged_terms: `lagged_terms` may add terms to a step (friction, viscosity).
         is_actuated: the term reads the action; `num_actuators` says how many entries.
+        is_translation_invariant: E(x + c) = E(x) for every shift c common to all vertices: the
+            energy reads differences of positions only (elastic terms, muscles, viscosity). Float32
+            Hessian blocks are then taken at positions relative to each element's first corner,
+            which float32 resolves wherever the body is (`energysim.objective.compiled_hessian`).
     """
 
     is_linear: bool = False
@@ -50,6 +55,7 @@ class EnergyTerm(nn.Module):
     has_gradient_kernel: bool = False
     has_lagged_terms: bool = False
     is_actuated: bool = False
+    is_translation_invariant: bool = False
 
     @property
     def scene(self) -> nn.Module | None:
@@ -120,6 +126,22 @@ class EnergyTerm(nn.Module):
             if name in self._buffers or name in self._parameters:
                 raise ValueError(f"{type(self).__name__}.{name} is registered: a copy would share it")
             part.__dict__[name] = value
+        return part
+
+    def in_precision(self, dtype: torch.dtype) -> EnergyTerm:
+        """A shallow copy of this term whose floating-point tensors (buffers, parameters detached,
+        plain tensor attributes) are cast to `dtype`, for evaluations in another precision (the
+        float32 Hessian of `energysim.objective.compiled_hessian`); this term is left as it is."""
+        part = copy.copy(self)
+        cast = {}
+        for name, value in [*self._buffers.items(), *self._parameters.items()]:
+            floating = value is not None and value.is_floating_point()
+            cast[name] = value.detach().to(dtype) if floating else value
+        # parameters become plain buffers of the copy: it is evaluated, never trained
+        part.__dict__["_buffers"], part.__dict__["_parameters"] = cast, {}
+        for name, value in vars(self).items():
+            if isinstance(value, Tensor) and value.is_floating_point():
+                part.__dict__[name] = value.to(dtype)
         return part
 
     @property

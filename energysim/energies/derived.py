@@ -62,6 +62,7 @@ class DensityEnergy(ElementEnergy):
 
     has_gradient_kernel = True
     has_hessian_kernel = True
+    is_translation_invariant = True
     rest_edge_inverse: Tensor
     rest_volume: Tensor
     # Whether the derived kernels run `torch.compile`d on an eager solver's calls: True always, False

@@ -73,6 +73,7 @@ class FibreMuscles(ElementEnergy):
     has_hessian_kernel = True
     has_batch_last_kernel = True
     is_actuated = True
+    is_translation_invariant = True
 
     def __init__(
         self,

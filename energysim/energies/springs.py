@@ -52,6 +52,7 @@ class Springs(ElementEnergy):
 
     has_gradient_kernel = True
     has_hessian_kernel = True
+    is_translation_invariant = True
 
     def __init__(
         self,

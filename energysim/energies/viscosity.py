@@ -137,6 +137,7 @@ class LaggedViscosity(ElementEnergy):
     has_constant_hessian = True
     has_gradient_kernel = True
     has_hessian_kernel = True
+    is_translation_invariant = True
 
     def __init__(self, viscosity: Viscosity, start_gradient: Tensor, dt: float) -> None:
         super().__init__()

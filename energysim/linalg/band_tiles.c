@@ -18,8 +18,8 @@
  *
  * The file is built twice into one library (`energysim.linalg.native`): as it stands, in double
  * precision, four systems a 32-byte vector (`band_solve_tiles`), and with -DREAL=float
- * -DSUFFIX=_single, eight systems a vector in single precision (`band_solve_tiles_single`), which
- * reads the same double-precision bands and rounds them as it gathers a tile.
+ * -DSUFFIX=_single, eight systems a vector in single precision (`band_solve_tiles_single`). Each
+ * build reads bands of its own precision.
  */
 #include <math.h>
 #include <string.h>
@@ -124,11 +124,11 @@ static void substitute_tile(const REAL *restrict tile, REAL *restrict v, long n,
 /* Solve A_b x_b = b_b for the `batch` matrices in `a` and the right-hand sides `x` [tiles, n, LANES]
  * (tiles = ceil(batch / LANES)), which are overwritten by the solutions; ok[b] is set to 0 where A_b
  * is not positive definite. Entry r of column i of matrix b is a[(i * w + r) * entry_stride + b *
- * batch_stride], in double precision whatever REAL is: batch-last storage (batch_stride 1) is
+ * batch_stride]: batch-last storage (batch_stride 1) is
  * gathered LANES entries at a time, any other lane by lane. `a` is only read; `work` holds
  * n * w * LANES numbers. A tile gathered just before its factorisation stays in cache for the
  * factorisation and both substitutions: its factors never travel through memory. */
-void JOIN(band_solve_tiles, SUFFIX)(const double *restrict a, long entry_stride, long batch_stride, long batch,
+void JOIN(band_solve_tiles, SUFFIX)(const REAL *restrict a, long entry_stride, long batch_stride, long batch,
                                     long n, long w, REAL *restrict x, unsigned char *restrict ok,
                                     REAL *restrict work) {
   const long tiles = (batch + LANES - 1) / LANES, entries = n * w;
@@ -136,14 +136,14 @@ void JOIN(band_solve_tiles, SUFFIX)(const double *restrict a, long entry_stride,
     const long first = t * LANES, count = batch - first < LANES ? batch - first : LANES;
     if (count == LANES && batch_stride == 1) {
       for (long e = 0; e < entries; ++e) {
-        const double *row = a + e * entry_stride + first;
-        for (long lane = 0; lane < LANES; ++lane) work[e * LANES + lane] = (REAL)row[lane];
+        const REAL *row = a + e * entry_stride + first;
+        for (long lane = 0; lane < LANES; ++lane) work[e * LANES + lane] = row[lane];
       }
     } else {
       for (long lane = 0; lane < LANES; ++lane) {
         if (lane < count) {
-          const double *matrix = a + (first + lane) * batch_stride;
-          for (long e = 0; e < entries; ++e) work[e * LANES + lane] = (REAL)matrix[e * entry_stride];
+          const REAL *matrix = a + (first + lane) * batch_stride;
+          for (long e = 0; e < entries; ++e) work[e * LANES + lane] = matrix[e * entry_stride];
         } else { /* padding: the identity */
           for (long e = 0; e < entries; ++e) work[e * LANES + lane] = e % w == 0 ? 1 : 0;
         }

@@ -67,15 +67,16 @@ def band_cholesky_solve(dense: Tensor, rhs: Tensor, layout: LevelLayout) -> tupl
     return solve_bands(bands, rhs, layout)
 
 
+def tiles_solve(batch: int, device: torch.device) -> bool:
+    """Whether `solve_bands` takes the C kernel for a batch of `batch` systems on `device`: CPU
+    batches of `TILE_MIN_BATCH` or more, where the kernel is built."""
+    return device.type == "cpu" and batch >= TILE_MIN_BATCH and native.library() is not None
+
+
 def solve_keeps_bands(bands: Tensor) -> bool:
     """Whether `solve_bands` leaves `bands` as they are: the C kernel reads them and factorises in its
     own work buffer, where LAPACK's path overwrites them with the factors."""
-    return (
-        bands.dtype == torch.float64
-        and bands.shape[0] >= TILE_MIN_BATCH
-        and bands.device.type == "cpu"
-        and native.library() is not None
-    )
+    return bands.dtype in (torch.float32, torch.float64) and tiles_solve(bands.shape[0], bands.device)
 
 
 def solve_bands(
@@ -85,10 +86,11 @@ def solve_bands(
     `[B, N, u + 1]` with `[b, j, r]` = A[p(j + r), p(j)] (`LevelLayout.band_entries`). `bands` may
     be overwritten by the factors.
 
-    Batches of float64 systems take the C kernel that factorises four at once (`solve_bands_in_tiles`)
-    where it is built, eight at once in float32 with `single`; the rest, LAPACK one matrix at a
-    time in the bands' own precision."""
+    Batches take the C kernel that factorises four float64 systems at once (`solve_bands_in_tiles`)
+    where it is built, eight at once in float32 for float32 `bands` or with `single`; the rest,
+    LAPACK one matrix at a time in the bands' own precision."""
     if solve_keeps_bands(bands):
+        single = single or bands.dtype == torch.float32
         return solve_bands_in_tiles(bands, rhs, layout, native.library(), single=single)
     return substitute_bands(factorise_bands(bands), rhs, layout)
 
@@ -96,18 +98,22 @@ def solve_bands(
 def solve_bands_in_tiles(
     bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL, *, single: bool = False
 ) -> tuple[Tensor, Tensor]:
-    """`solve_bands` by the C kernel of `energysim.linalg.native` (float64 bands, CPU), four systems
-    to a tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands
+    """`solve_bands` by the C kernel of `energysim.linalg.native` (CPU), four float64 systems to a
+    tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands
     where they lie (`_band_strides`); batch-last storage, the compiled band Hessian's transposed
     view, it gathers a tile's systems at a time. `bands` is left unchanged.
 
-    `single`: factorise and solve in float32, eight systems to a tile, the bands rounded as the
-    kernel gathers them; the solutions are returned in the bands' precision. Which systems are
-    positive definite stays float64's verdict: those float32 finds not positive definite are solved
-    again in float64 (rounding can tip a nearly singular matrix either way)."""
+    `single` (implied by float32 `bands`): factorise and solve in float32, eight systems to a tile
+    (float64 bands are rounded to a float32 copy first); the solutions are returned in `rhs`'s
+    precision. Which systems are positive definite stays float64's verdict: those float32 finds not
+    positive definite are solved again in float64 (rounding can tip a nearly singular matrix either
+    way)."""
+    given, single = bands, single or bands.dtype == torch.float32
+    if single and bands.dtype != torch.float32:
+        bands = bands.to(torch.float32)  # strides kept: batch-last stays batch-last
     batch, size, width = bands.shape
     lanes = 2 * TILE if single else TILE
-    real = torch.float32 if single else bands.dtype
+    real = bands.dtype
     tiles = -(-batch // lanes)
     storage, entry_stride, batch_stride = _band_strides(bands)
     # the right-hand sides as the tiles' lanes `[tiles, N, lanes]`, zero past the batch
@@ -128,7 +134,7 @@ def solve_bands_in_tiles(
     solution[:, layout.band_order] = torch.where(solved[:, None], in_order, 0.0)
     if single and not bool(solved.all()):
         rows = torch.nonzero(~solved).reshape(-1)
-        again, again_solved = solve_bands_in_tiles(bands[rows], rhs[rows], layout, kernels)
+        again, again_solved = solve_bands_in_tiles(given[rows].double(), rhs[rows], layout, kernels)
         solution = solution.index_copy(0, rows, again)
         solved = solved.index_copy(0, rows, again_solved)
     return solution, solved

@@ -32,6 +32,7 @@ from energysim.linalg.banded import (
     solve_bands,
     solve_keeps_bands,
     substitute_bands,
+    tiles_solve,
 )
 from energysim.linalg.block_tridiagonal import LevelLayout, cached_layout, level_solve, prefer_levels
 
@@ -311,7 +312,9 @@ def compiled_system(
         levels = objective.level_hessian(like, plan.layout)
         return None if levels is None else LevelCholesky(*levels, plan.layout)
     if plan.layout is not None:
-        bands = objective.band_hessian(like, plan.layout)
+        # float32 storage where the C kernel takes the batch (LAPACK's path stays float64)
+        single = single and tiles_solve(like.shape[0], like.device)
+        bands = objective.band_hessian(like, plan.layout, single=single)
         return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep, single=single)
     dense = objective.dense_hessian(like)
     return None if dense is None else DenseCholesky(dense)

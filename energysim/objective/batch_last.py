@@ -221,29 +221,37 @@ def hessian_entries_batch_last(
     terms: tuple[EnergyTerm, ...],
     action: Tensor | None,
     x: Tensor,
-    groups: tuple[tuple[tuple[int, ...], Tensor], ...],
+    groups: tuple[tuple[tuple[int, ...], Tensor, bool], ...],
     diagonal_positions: Tensor,
     length: int,
     start: Tensor | None = None,
+    single: bool = False,
 ) -> Tensor:
     # `energysim.objective.compiled`'s `_hessian_entries` for a storage that keeps one triangle
     # (band storage), batch-last: each group's summed upper entries (`batch_last_hessian_entries`,
     # `[P, m, B]`) land at the group's positions (`band_upper_positions`) of a `[length + 1, B]`
-    # storage (a copy of `start` where given), the per-vertex diagonals at `diagonal_positions`;
-    # returned whole and batch-last: the band solve reads it through a transposed view (the C
-    # kernels' four-lane tiles gather straight from it; LAPACK's path makes the copy it needs)
+    # storage (a copy of `start` where given; float32 with `single`, a `relative` group evaluated
+    # in float32 at positions relative to each element's first corner), the per-vertex diagonals at
+    # `diagonal_positions`; returned whole and batch-last: the band solve reads it through a
+    # transposed view (the C kernels' tiles gather straight from it; LAPACK's path makes the copy
+    # it needs)
     batch, n, dim = x.shape
     states = x.reshape(batch, n * dim).T
+    dtype = torch.float32 if single else x.dtype
     action_t = None if action is None else action.T
-    flat = x.new_zeros(length + 1, batch) if start is None else start.clone()
+    flat = x.new_zeros(length + 1, batch, dtype=dtype) if start is None else start.clone()
     diagonal = vertex_diagonal(terms, x)
     if diagonal is not None:
-        flat.index_add_(0, diagonal_positions, diagonal.T)
-    for members, positions in groups:
+        flat.index_add_(0, diagonal_positions, diagonal.T.to(dtype))
+    for members, positions, relative in groups:
         corners = _corners(states, _corner_dofs(terms[members[0]], dim, x.device))
-        entries = terms[members[0]].batch_last_hessian_entries(corners, action_t)
+        read = action_t
+        if relative:
+            corners = [[(corner - row[0]).to(dtype) for corner in row] for row in corners]
+            read = None if action_t is None else action_t.to(dtype)
+        entries = terms[members[0]].batch_last_hessian_entries(corners, read)
         for member in members[1:]:
-            more = terms[member].batch_last_hessian_entries(corners, action_t)
+            more = terms[member].batch_last_hessian_entries(corners, read)
             entries = [first + second for first, second in zip(entries, more, strict=True)]
-        flat.index_add_(0, positions, torch.stack(entries).reshape(-1, batch))
+        flat.index_add_(0, positions, torch.stack(entries).reshape(-1, batch).to(dtype))
     return flat

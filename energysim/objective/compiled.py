@@ -113,27 +113,34 @@ def _hessian_entries(
     terms: tuple[EnergyTerm, ...],
     action: Tensor | None,
     x: Tensor,
-    groups: tuple[tuple[tuple[int, ...], Tensor], ...],
+    groups: tuple[tuple[tuple[int, ...], Tensor, bool], ...],
     diagonal_positions: Tensor,
     length: int,
     start: Tensor | None = None,
+    single: bool = False,
 ) -> Tensor:
     # every term's Hessian entries summed into one flat storage per batch entry (a dense matrix, or
-    # band storage), `[B, length + 1]`, added to a copy of `start` (same shape) where given:
-    # per-vertex diagonals at `diagonal_positions`; element blocks by group (terms sharing their
-    # elements, summed before one scatter) at the group's positions, where the last slot takes the
-    # entries the storage drops
+    # band storage), `[B, length + 1]`, float32 with `single`, added to a copy of `start` (same
+    # shape) where given: per-vertex diagonals at `diagonal_positions`; element blocks by group
+    # (terms sharing their elements, summed before one scatter) at the group's positions, where the
+    # last slot takes the entries the storage drops; a `relative` group in float32 at positions
+    # relative to each element's first corner (`compiled_hessian.band_hessian`)
     batch = x.shape[0]
-    flat = x.new_zeros(batch, length + 1) if start is None else start.clone()
+    dtype = torch.float32 if single else x.dtype
+    flat = x.new_zeros(batch, length + 1, dtype=dtype) if start is None else start.clone()
     diagonal = batch_last.vertex_diagonal(terms, x)
     if diagonal is not None:
-        flat[:, diagonal_positions] += diagonal
-    for members, positions in groups:
+        flat[:, diagonal_positions] += diagonal.to(dtype)
+    for members, positions, relative in groups:
         element_positions = x[:, terms[members[0]].element_vertices]
-        blocks = terms[members[0]].element_hessian(element_positions, action)
+        read = action
+        if relative:
+            element_positions = (element_positions - element_positions[:, :, :1]).to(dtype)
+            read = None if action is None else action.to(dtype)
+        blocks = terms[members[0]].element_hessian(element_positions, read)
         for member in members[1:]:
-            blocks = blocks + terms[member].element_hessian(element_positions, action)
-        flat.index_add_(1, positions, blocks.reshape(batch, -1))
+            blocks = blocks + terms[member].element_hessian(element_positions, read)
+        flat.index_add_(1, positions, blocks.reshape(batch, -1).to(dtype))
     return flat
 
 

@@ -54,31 +54,49 @@ def _entries(
     positions: Positions,
     diagonal: Tensor,
     length: int,
-    constant: dict[object, Tensor] | None,
+    constant: dict[object, object] | None,
     key: object,
+    single: bool = False,
 ) -> Tensor | None:
     """Every term's Hessian entries by the compiled function `name`, as it returns them (element-major
     `[B, length + 1]`, batch-last `[length + 1, B]`, the last slot taking what the storage drops): each
     group's element blocks at `positions(element_vertices)`, per-vertex diagonals at `diagonal`.
     With a `constant` cache, the constant terms' part is computed once under `key` (by
     `constant_<name>`, as the whole storage) and the others' entries are added to a copy of it; None
-    where compiling failed."""
+    where compiling failed. `single`: a float32 storage, see `band_hessian`."""
+    copies = {} if constant is None else constant  # float32 copies of terms, kept with the objective's
 
-    def groups(of: tuple[EnergyTerm, ...]) -> tuple[tuple[tuple[int, ...], Tensor], ...]:
-        return tuple((members, positions(of[members[0]].element_vertices)) for members in element_groups(of))
+    def arguments(of: tuple[EnergyTerm, ...]) -> tuple[tuple[EnergyTerm, ...], tuple]:
+        # the terms as the compiled function reads them, and their groups (members, positions,
+        # relative): a relative group is evaluated in float32 at positions relative to each element's
+        # first corner, from float32 copies of its terms (`EnergyTerm.in_precision`)
+        evaluated, grouped = list(of), []
+        for members in element_groups(of):
+            relative = single and all(of[member].is_translation_invariant for member in members)
+            for member in members if relative else ():
+                copy_key = ("float32", id(of[member]))
+                if copy_key not in copies:
+                    copies[copy_key] = of[member].in_precision(torch.float32)
+                evaluated[member] = copies[copy_key]
+            grouped.append((members, positions(of[members[0]].element_vertices), relative))
+        return tuple(evaluated), tuple(grouped)
+
+    def entries(function: str, of: tuple[EnergyTerm, ...], start: Tensor | None) -> Tensor | None:
+        evaluated, grouped = arguments(of)
+        return call(function, evaluated, action, x, grouped, diagonal, length, start, single)
 
     fixed = tuple(term for term in terms if term.has_constant_hessian and not term.is_linear)
     if constant is None or not fixed:
-        return call(name, tuple(terms), action, x, groups(tuple(terms)), diagonal, length)
+        return entries(name, tuple(terms), None)
     start = constant.get(key)
     if start is None:
-        start = call(f"constant_{name}", fixed, action, x, groups(fixed), diagonal, length)
+        start = entries(f"constant_{name}", fixed, None)
         if start is None:
             return None
         constant[key] = start
     # (no varying terms: the call copies the start into the returned storage)
     varying = tuple(term for term in terms if not term.has_constant_hessian and not term.is_linear)
-    return call(name, varying, action, x, groups(varying), diagonal, length, start)
+    return entries(name, varying, start)
 
 
 def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
@@ -93,7 +111,7 @@ def dense_hessian(
     action: Tensor | None,
     free: Tensor,
     x: Tensor,
-    constant: dict[object, Tensor] | None = None,
+    constant: dict[object, object] | None = None,
 ) -> Tensor | None:
     """∇²E(x) as dense `[B, n·d, n·d]` matrices, fixed DOFs eliminated (identity rows and columns),
     by the compiled function, or None. `constant`: the objective's cache of its constant terms'
@@ -125,24 +143,32 @@ def band_hessian(
     free: Tensor,
     x: Tensor,
     layout: LevelLayout,
-    constant: dict[object, Tensor] | None = None,
+    constant: dict[object, object] | None = None,
+    *,
+    single: bool = False,
 ) -> Tensor | None:
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
     eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`. From
-    `BATCH_LAST_MIN_BATCH` entries on it is a transposed view of batch-last memory."""
+    `BATCH_LAST_MIN_BATCH` entries on it is a transposed view of batch-last memory.
+
+    `single`: the storage in float32, for a float32 factorisation. The translation-invariant terms
+    (`EnergyTerm.is_translation_invariant`) are evaluated in float32 at positions relative to each
+    element's first corner, so their blocks keep float32's relative precision however far the body
+    has moved; the others in float64, their entries rounded as they are added."""
     batch, n, dim = x.shape
     diagonal = band_diagonal_positions(layout)
     length = band_length(layout)
-    key = ("band", id(layout), x.shape, x.dtype, x.device)
+    key = ("band", id(layout), x.shape, x.dtype, x.device, single)
     if batch >= BATCH_LAST_MIN_BATCH:
         # batch-last: every element kernel one loop vectorised over the batch, half the entries
         positions = functools.partial(band_upper_positions, layout, dim=dim)
         name = "hessian_entries_batch_last"
-        flat = _entries(name, terms, action, x, positions, diagonal, length, constant, key)
+        flat = _entries(name, terms, action, x, positions, diagonal, length, constant, key, single)
         flat = None if flat is None else flat[:length].T
     else:
         positions = functools.partial(band_positions, layout, dim=dim)
-        flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
+        arguments = (terms, action, x, positions, diagonal, length, constant, key, single)
+        flat = _entries("hessian_entries", *arguments)
         flat = None if flat is None else flat[:, :length]
     if flat is None:
         return None
@@ -157,7 +183,7 @@ def level_hessian(
     free: Tensor,
     x: Tensor,
     layout: LevelLayout,
-    constant: dict[object, Tensor] | None = None,
+    constant: dict[object, object] | None = None,
 ) -> tuple[Tensor, Tensor] | None:
     """∇²E(x) as `layout`'s level blocks (`energysim.linalg.level_storage`): the diagonal blocks
     `[B, L, S, S]` and the sub-diagonal ones `[B, L−1, S, S]`, padding and fixed DOFs given identity

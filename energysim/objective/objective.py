@@ -69,8 +69,9 @@ class Objective:
     compiled: bool = False
 
     _closed_forms: dict[bool, bool] = field(default_factory=dict, init=False, repr=False)
-    # the Hessian part of the terms with a constant Hessian, per storage (`compiled_hessian`)
-    _constant_hessians: dict[object, Tensor] = field(default_factory=dict, init=False, repr=False)
+    # the Hessian part of the terms with a constant Hessian, per storage, and the terms' float32
+    # copies (`compiled_hessian`)
+    _constant_hessians: dict[object, object] = field(default_factory=dict, init=False, repr=False)
 
     def _compiles(self, *, hessian: bool = False) -> bool:
         if not self.compiled:
@@ -190,13 +191,14 @@ class Objective:
             self.terms, self.action, self.free, x, self._constant_hessians
         )
 
-    def band_hessian(self, x: Tensor, layout: LevelLayout) -> Tensor | None:
+    def band_hessian(self, x: Tensor, layout: LevelLayout, *, single: bool = False) -> Tensor | None:
         """∇²E(x) in `layout`'s band storage `[B, N, u + 1]` (`energysim.linalg.banded`) by the compiled
-        function, fixed DOFs eliminated; None as for `dense_hessian`."""
+        function, fixed DOFs eliminated; None as for `dense_hessian`. `single`: in float32, for a
+        float32 factorisation (`compiled_hessian.band_hessian`)."""
         if not self._compiles(hessian=True):
             return None
         return compiled_hessian.band_hessian(
-            self.terms, self.action, self.free, x, layout, self._constant_hessians
+            self.terms, self.action, self.free, x, layout, self._constant_hessians, single=single
         )
 
     def level_hessian(self, x: Tensor, layout: LevelLayout) -> tuple[Tensor, Tensor] | None:

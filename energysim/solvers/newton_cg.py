@@ -112,9 +112,10 @@ class NewtonCG(Solver):
             changes slowly (a swinging beam). The factors are kept by this solver object, per batch
             size and M/h² (`KEPT_FACTORISATIONS` of them), and entries are matched by their row in
             the batch: results depend on what the solver solved before, within `tol`.
-        factor_precision: "single" factorises H in float32 where the C band kernel solves
-            (`compile=True`, CPU, batches of 3 or more; `solve_bands_in_tiles`): only the direction
-            is rounded, the residual and line search stay float64. The RL envs use it.
+        factor_precision: "single" assembles and factorises H in float32 where the C band kernel
+            solves (`compile=True`, CPU, batches of 3 or more; `solve_bands_in_tiles`,
+            `Objective.band_hessian`): only the direction is rounded, the residual and line search
+            stay float64. The RL envs use it.
     """
 
     max_iter: int = 100
