@@ -246,6 +246,21 @@ def test_passive_elements_are_left_out_and_their_fibres_ignored():
     assert torch.allclose(term.fibres[[1, 4]].norm(dim=-1), torch.ones(2, dtype=torch.float64))
 
 
+def test_muscles_on_every_element_share_the_meshs_element_tensor_with_the_elastic_term():
+    # the compiled batch evaluations gather and scatter terms together where they hold the same
+    # `element_vertices` tensor; the energy is the one of a private copy of the elements
+    scene = es.Scene(small_box(3), gravity=None)
+    elastic = scene.add(es.NeoHookean(1e5, 0.3))
+    fibres = torch.ones(scene.mesh.num_elements, 3, dtype=torch.float64)
+    muscles = scene.add(FibreMuscles(fibres, torch.zeros(scene.mesh.num_elements, dtype=torch.int64)))
+    assert muscles.element_vertices is elastic.element_vertices
+    x = scene.mesh.vertices[None] * torch.tensor([1.1, 0.9, 1.0], dtype=torch.float64)
+    action = torch.full((1, 1), 0.6, dtype=torch.float64)
+    energy = muscles(x, action)
+    muscles.element_vertices = scene.mesh.elements.clone()
+    assert torch.allclose(muscles(x, action), energy, rtol=1e-14, atol=0.0) and float(energy) > 0
+
+
 def test_bad_inputs_raise_clear_errors():
     mesh = small_box(3, cells=1)
     count = mesh.num_elements

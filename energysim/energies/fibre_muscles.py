@@ -135,11 +135,16 @@ class FibreMuscles(ElementEnergy):
             )
         check_per_element(self.stiffness, count, "stiffness", "mesh element")
         element_index = torch.nonzero(self.actuators >= 0).reshape(-1)
-        elements = mesh.elements[element_index]
+        # every element actuated: the mesh's own tensor, which the elastic terms hold too, so that
+        # the compiled batch evaluations gather and scatter them together (they group terms by the
+        # identity of `element_vertices`): one gather and one scatter of 64 worms' corners fewer
+        # per energy and gradient
+        whole = element_index.shape[0] == mesh.num_elements
+        elements = mesh.elements if whole else mesh.elements[element_index].contiguous()
         rest_edge_inverse, rest_volume = simplex_rest_frame(mesh.vertices, elements)
         fibre = self.fibres[element_index].to(rest_edge_inverse.dtype)
         self.register_buffer("element_index", element_index)
-        self.register_buffer("element_vertices", elements.contiguous())
+        self.register_buffer("element_vertices", elements)
         self.register_buffer("element_actuator", self.actuators[element_index])
         self.register_buffer("rest_volume", rest_volume)
         self.register_buffer("fibre_weights", (shape_gradients(rest_edge_inverse) @ fibre[..., None])[..., 0])
