@@ -276,3 +276,30 @@ def test_float32_worms_that_stalled_on_such_steps_converge(entry: int, steps: in
         _, _, terminated, _, info = env.step(actions.sample()[entry : entry + 1])
         assert not terminated[0]
         assert float(info["solver_residual"][0]) < 1e-2
+
+
+def test_the_noise_measured_in_one_evaluation_of_repeated_rows_is_the_sample_by_sample_noise() -> None:
+    # `energy_noise(replicated=...)`: the samples of two of three worms as one evaluation of the
+    # objective of their rows repeated (`rows_of`), against one evaluation per sample
+    from energysim.creatures import load_creature, resting_state
+    from energysim.integrators.adjoint import step_terms
+    from energysim.integrators.implicit_stage import rows_of
+    from energysim.objective.objective import Objective
+    from energysim.solvers.line_search import NOISE_SAMPLES
+
+    scene = load_creature("worm").scene(1 / 60, 0.8)
+    x, v = scene.split_state(resting_state(scene).reshape(1, -1).expand(3, -1))
+    generator = torch.Generator().manual_seed(4)
+    v = v + 0.1 * torch.randn(v.shape, generator=generator, dtype=v.dtype)
+    action = torch.rand(3, 10, generator=generator, dtype=x.dtype) * 2 - 1
+    terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, v, scene.free)
+    objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass, action)
+    rows = torch.tensor([2, 0])
+    probe = (x + 1e-5 * torch.randn(x.shape, generator=generator, dtype=x.dtype))[rows]
+    part = rows_of(objective, scene.terms, rows)
+    energy = part.energy(probe)
+    one_by_one = energy_noise(part, probe, energy)
+    replicated = rows_of(objective, scene.terms, rows.repeat(NOISE_SAMPLES))
+    together = energy_noise(part, probe, energy, replicated=replicated)
+    assert bool(torch.isfinite(energy).all() and (one_by_one > 0).all())
+    torch.testing.assert_close(together, one_by_one, rtol=1e-9, atol=0.0)

@@ -26,7 +26,13 @@ NOISE_SAMPLES = 4
 NOISE_ALLOWANCE = 4.0
 
 
-def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int = NOISE_SAMPLES) -> Tensor:
+def energy_noise(
+    objective: Objective,
+    x: Tensor,
+    energy: Tensor,
+    samples: int = NOISE_SAMPLES,
+    replicated: Objective | None = None,
+) -> Tensor:
     """The rounding noise of E near `x`, measured: its spread over positions a few ulps away, `[B]`, in J.
 
     Every free coordinate moves by a fixed pattern of −2 … 2 times eps·|x|, the size of the rounding
@@ -47,6 +53,11 @@ def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int =
         objective: the objective whose `energy` is measured (each sample counts as an evaluation).
         x: positions `[B, n, d]`, in m; energy: E(x) `[B]`, in J, one of the spread's values.
         samples: perturbed evaluations.
+        replicated: the objective of `samples` copies of the batch one after the other (entries
+            `arange(B).repeat(samples)`), or None. Given, the samples are one evaluation of it
+            instead of `samples` evaluations of `objective`: each call of a compiled objective
+            costs its dispatch and guard checks, which for the few entries a search measures
+            are most of its time.
 
     Returns:
         the largest minus the smallest finite value of E among them, per batch entry (0 if none is).
@@ -55,7 +66,11 @@ def energy_noise(objective: Objective, x: Tensor, energy: Tensor, samples: int =
     generator = torch.Generator().manual_seed(0)
     patterns = torch.randint(-2, 3, (samples, *x.shape[1:]), generator=generator).to(x)
     unit = torch.finfo(x.dtype).eps * x.abs() * objective.free[:, None].to(x.dtype)
-    values = [energy] + [objective.energy(x + pattern * unit) for pattern in patterns]
+    points = [x + pattern * unit for pattern in patterns]
+    if replicated is None:
+        values = [energy] + [objective.energy(point) for point in points]
+    else:
+        values = [energy, *replicated.energy(torch.cat(points)).reshape(samples, -1).unbind(0)]
     stacked = torch.stack(values)
     finite = torch.isfinite(stacked)
     largest = torch.where(finite, stacked, -torch.inf).amax(dim=0)
@@ -72,9 +87,11 @@ def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor 
     return torch.fmax(_rounding(x, energy), noise)
 
 
-def _noise_allowance(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
+def _noise_allowance(
+    objective: Objective, x: Tensor, energy: Tensor, replicated: Objective | None = None
+) -> Tensor:
     # the measured noise of E near `x`, times `NOISE_ALLOWANCE`, `[B]`, in J
-    return NOISE_ALLOWANCE * energy_noise(objective, x, energy)
+    return NOISE_ALLOWANCE * energy_noise(objective, x, energy, replicated=replicated)
 
 
 def _sufficient_decrease(
@@ -178,9 +195,9 @@ def line_step(
     """
     measured_noise = [noise]
 
-    def rows_alone(rows: Tensor) -> Objective | None:
-        # the objective of `rows` alone, where that is possible and saves work
-        return restrict(rows) if restrict is not None and 2 * rows.numel() <= x.shape[0] else None
+    def alone(rows: Tensor) -> bool:
+        # whether `rows` are evaluated on an objective of their own: possible, and it saves work
+        return restrict is not None and 2 * rows.numel() <= x.shape[0]
 
     def noise_floor(needed: Tensor) -> Tensor:
         # the allowance, with the noise of E measured for the `needed` entries that lack it
@@ -189,11 +206,13 @@ def line_step(
             known = torch.full_like(energy, torch.nan)
         rows = torch.nonzero(needed & torch.isnan(known)).reshape(-1)
         if rows.numel():
-            part = rows_alone(rows)
-            if part is None:
+            if not alone(rows):
                 known = torch.where(torch.isnan(known), _noise_allowance(objective, x, energy), known)
             else:
-                known = known.index_copy(0, rows, _noise_allowance(part, x[rows], energy[rows]))
+                # every sample of every row in one evaluation: the objective of the rows repeated
+                replicated = restrict(rows.repeat(NOISE_SAMPLES))
+                allowance = _noise_allowance(objective, x[rows], energy[rows], replicated)
+                known = known.index_copy(0, rows, allowance)
             measured_noise[0] = known
         return _noise_floor(objective, x, energy, known)
 
@@ -261,7 +280,7 @@ def line_step(
             measured_noise[0],
         )
     refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
-    part = rows_alone(refusing)
+    part = restrict(refusing) if alone(refusing) else None
     if part is not None:
         steps, _, _ = backtracking_line_search(
             part,

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from energysim.energies.inertia import Inertia
 from energysim.linalg.block_tridiagonal import LevelLayout
-from energysim.linalg.conjugate_gradient import ConjugateGradient, batched_dot, block_jacobi
+from energysim.linalg.conjugate_gradient import ConjugateGradient, block_jacobi
 from energysim.linalg.linear_solve import (
     COMPILED_BAND_MAX_DOFS,
     EAGER_DIRECT_MAX_DOFS,
@@ -222,8 +222,8 @@ class NewtonCG(Solver):
             # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient.
             # Only active entries count: a converged one has no direction (slope 0), and building the
             # preconditioner for it cost a whole-batch eager Hessian in half of the iterations of a
-            # batch of 64 worms
-            slope = batched_dot(gradient, direction)
+            # batch of 64 worms. (Multiply-then-sum: several times faster here than a BLAS dot.)
+            slope = (gradient * direction).sum(dim=(-1, -2))
             uphill = active & (slope >= 0)
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
