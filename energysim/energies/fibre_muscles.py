@@ -137,8 +137,7 @@ class FibreMuscles(ElementEnergy):
         element_index = torch.nonzero(self.actuators >= 0).reshape(-1)
         # every element actuated: the mesh's own tensor, which the elastic terms hold too, so that
         # the compiled batch evaluations gather and scatter them together (they group terms by the
-        # identity of `element_vertices`): one gather and one scatter of 64 worms' corners fewer
-        # per energy and gradient
+        # identity of `element_vertices`): one gather and one scatter fewer per evaluation
         whole = element_index.shape[0] == mesh.num_elements
         elements = mesh.elements if whole else mesh.elements[element_index].contiguous()
         rest_edge_inverse, rest_volume = simplex_rest_frame(mesh.vertices, elements)
