@@ -90,7 +90,6 @@ def solve_bands(
     where it is built, eight at once in float32 for float32 `bands` or with `single`; the rest,
     LAPACK one matrix at a time in the bands' own precision."""
     if solve_keeps_bands(bands):
-        single = single or bands.dtype == torch.float32
         return solve_bands_in_tiles(bands, rhs, layout, native.library(), single=single)
     return substitute_bands(factorise_bands(bands), rhs, layout)
 

@@ -99,22 +99,21 @@ class DenseCholesky:
 @dataclass(frozen=True)
 class BandCholesky:
     """Systems in `layout`'s band storage `[B, N, u + 1]` (`LevelLayout.band_entries`), by band
-    Cholesky (`solve_bands`). `solve` may factorise `bands` in place; `pristine` keeps H for shifted
-    retries."""
+    Cholesky (`solve_bands`; float32 bands in float32). `solve` may factorise `bands` in place;
+    `pristine` keeps H for shifted retries."""
 
     bands: Tensor
     layout: LevelLayout
     pristine: Tensor | None = None
-    single: bool = False  # factorise in float32 where the C kernel solves (`solve_bands`)
 
     @staticmethod
-    def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False, single: bool = False) -> BandCholesky:
+    def of(bands: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
         """The system of `bands`; `keep`: keep H, so that `shifted` can read it: a copy where the
         solve overwrites `bands` (LAPACK), `bands` themselves where the batched C kernel solves,
         which only reads them (no copy of the whole batch's Hessians every Newton iteration)."""
         if not keep:
-            return BandCholesky(bands, layout, single=single)
-        return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone(), single)
+            return BandCholesky(bands, layout)
+        return BandCholesky(bands, layout, bands if solve_keeps_bands(bands) else bands.clone())
 
     @staticmethod
     def from_dense(matrices: Tensor, layout: LevelLayout, *, keep: bool = False) -> BandCholesky:
@@ -124,9 +123,7 @@ class BandCholesky:
         return BandCholesky.of(bands, layout, keep=keep)
 
     def solve(self, rhs: Tensor, wanted: Tensor) -> tuple[Tensor, Tensor]:
-        solution, positive_definite = solve_bands(
-            self.bands, rhs.reshape(rhs.shape[0], -1), self.layout, single=self.single
-        )
+        solution, positive_definite = solve_bands(self.bands, rhs.reshape(rhs.shape[0], -1), self.layout)
         return _band_result(solution, positive_definite, rhs, wanted)
 
     def shifted(self, rows: Tensor, shift: float) -> BandCholesky:
@@ -134,7 +131,7 @@ class BandCholesky:
             raise ValueError("BandCholesky.shifted needs the matrix kept: build it with keep=True")
         bands = self.pristine[rows].clone()
         bands[..., 0] += shift * bands[..., 0].abs()  # column 0 holds the diagonal
-        return BandCholesky(bands, self.layout, single=self.single)
+        return BandCholesky(bands, self.layout)
 
 
 def _band_result(
@@ -307,7 +304,7 @@ def compiled_system(
     """The direct system of a compiled `plan` (`LinearSolvePlan.compiled`), from the Hessian the
     objective's compiled function assembles straight into the plan's storage (`Objective.dense_hessian`,
     `band_hessian`, `level_hessian`) at `like`; None where it has none. `keep`: as for `eager_system`;
-    `single`: band systems factorise in float32 where the C kernel solves them (`solve_bands`)."""
+    `single`: band systems are assembled and factorised in float32 where the C kernel solves them."""
     if plan.method == "levels":
         levels = objective.level_hessian(like, plan.layout)
         return None if levels is None else LevelCholesky(*levels, plan.layout)
@@ -315,7 +312,7 @@ def compiled_system(
         # float32 storage where the C kernel takes the batch (LAPACK's path stays float64)
         single = single and tiles_solve(like.shape[0], like.device)
         bands = objective.band_hessian(like, plan.layout, single=single)
-        return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep, single=single)
+        return None if bands is None else BandCholesky.of(bands, plan.layout, keep=keep)
     dense = objective.dense_hessian(like)
     return None if dense is None else DenseCholesky(dense)
 

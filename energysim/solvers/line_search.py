@@ -27,10 +27,7 @@ NOISE_ALLOWANCE = 4.0
 
 
 def energy_noise(
-    objective: Objective,
-    x: Tensor,
-    energy: Tensor,
-    samples: int = NOISE_SAMPLES,
+    objective: Objective, x: Tensor, energy: Tensor, samples: int = NOISE_SAMPLES,
     replicated: Objective | None = None,
 ) -> Tensor:
     """The rounding noise of E near `x`, measured: its spread over positions a few ulps away, `[B]`, in J.
@@ -53,11 +50,9 @@ def energy_noise(
         objective: the objective whose `energy` is measured (each sample counts as an evaluation).
         x: positions `[B, n, d]`, in m; energy: E(x) `[B]`, in J, one of the spread's values.
         samples: perturbed evaluations.
-        replicated: the objective of `samples` copies of the batch one after the other (entries
-            `arange(B).repeat(samples)`), or None. Given, the samples are one evaluation of it
-            instead of `samples` evaluations of `objective`: each call of a compiled objective
-            costs its dispatch and guard checks, which for the few entries a search measures
-            are most of its time.
+        replicated: the objective of `samples` copies of the batch (entries `arange(B).repeat(samples)`),
+            or None. Given, the samples are one evaluation of it, not `samples` (a compiled call's
+            dispatch and guards are most of its cost for the few entries a search measures).
 
     Returns:
         the largest minus the smallest finite value of E among them, per batch entry (0 if none is).
@@ -87,11 +82,9 @@ def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor 
     return torch.fmax(_rounding(x, energy), noise)
 
 
-def _noise_allowance(
-    objective: Objective, x: Tensor, energy: Tensor, replicated: Objective | None = None
-) -> Tensor:
+def _noise_allowance(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
     # the measured noise of E near `x`, times `NOISE_ALLOWANCE`, `[B]`, in J
-    return NOISE_ALLOWANCE * energy_noise(objective, x, energy, replicated=replicated)
+    return NOISE_ALLOWANCE * energy_noise(objective, x, energy)
 
 
 def _sufficient_decrease(
@@ -211,8 +204,8 @@ def line_step(
             else:
                 # every sample of every row in one evaluation: the objective of the rows repeated
                 replicated = restrict(rows.repeat(NOISE_SAMPLES))
-                allowance = _noise_allowance(objective, x[rows], energy[rows], replicated)
-                known = known.index_copy(0, rows, allowance)
+                spread = energy_noise(objective, x[rows], energy[rows], replicated=replicated)
+                known = known.index_copy(0, rows, NOISE_ALLOWANCE * spread)
             measured_noise[0] = known
         return _noise_floor(objective, x, energy, known)
 

@@ -219,10 +219,9 @@ class NewtonCG(Solver):
             hvps += products
             if steepest.any():
                 direction = torch.where(steepest[:, None, None], precondition(-gradient), direction)
-            # descent safeguard: a direction that does not go downhill becomes the preconditioned gradient.
-            # Only active entries count: a converged one has no direction (slope 0), and building the
-            # preconditioner for it cost a whole-batch eager Hessian in half of the iterations of a
-            # batch of 64 worms. (Multiply-then-sum: several times faster here than a BLAS dot.)
+            # descent safeguard: an uphill direction becomes the preconditioned gradient. Only active
+            # entries count: a converged one has no direction (slope 0), and preconditioning it cost a
+            # whole-batch eager Hessian. (Multiply-then-sum: several times faster here than a BLAS dot.)
             slope = (gradient * direction).sum(dim=(-1, -2))
             uphill = active & (slope >= 0)
             if uphill.any():
