@@ -41,7 +41,7 @@ def _worm_objective(batch: int, shift: float) -> tuple[Objective, torch.Tensor]:
     return objective, probe
 
 
-def generator() -> torch.Generator:
+def _generator() -> torch.Generator:
     return torch.Generator().manual_seed(7)
 
 
@@ -55,7 +55,7 @@ def test_the_terms_declared_translation_invariant_are():
     scene = es.Scene(box, gravity=None)
     for term in springs:
         scene.add(term)
-    wobble = torch.randn(1, *box.vertices.shape, generator=generator(), dtype=box.vertices.dtype)
+    wobble = torch.randn(1, *box.vertices.shape, generator=_generator(), dtype=box.vertices.dtype)
     box_x = box.vertices[None] + 0.01 * wobble
     declared = 0
     cases = [(term, x, objective.action) for term in objective.terms]

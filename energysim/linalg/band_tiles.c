@@ -124,10 +124,10 @@ static void substitute_tile(const REAL *restrict tile, REAL *restrict v, long n,
 /* Solve A_b x_b = b_b for the `batch` matrices in `a` and the right-hand sides `x` [tiles, n, LANES]
  * (tiles = ceil(batch / LANES)), which are overwritten by the solutions; ok[b] is set to 0 where A_b
  * is not positive definite. Entry r of column i of matrix b is a[(i * w + r) * entry_stride + b *
- * batch_stride]: batch-last storage (batch_stride 1) is
- * gathered LANES entries at a time, any other lane by lane. `a` is only read; `work` holds
- * n * w * LANES numbers. A tile gathered just before its factorisation stays in cache for the
- * factorisation and both substitutions: its factors never travel through memory. */
+ * batch_stride]: batch-last storage (batch_stride 1) is gathered LANES entries at a time, any other
+ * lane by lane. `a` is only read; `work` holds n * w * LANES numbers. A tile gathered just before
+ * its factorisation stays in cache for the factorisation and both substitutions: its factors never
+ * travel through memory. */
 void JOIN(band_solve_tiles, SUFFIX)(const REAL *restrict a, long entry_stride, long batch_stride, long batch,
                                     long n, long w, REAL *restrict x, unsigned char *restrict ok,
                                     REAL *restrict work) {
@@ -135,10 +135,8 @@ void JOIN(band_solve_tiles, SUFFIX)(const REAL *restrict a, long entry_stride, l
   for (long t = 0; t < tiles; ++t) {
     const long first = t * LANES, count = batch - first < LANES ? batch - first : LANES;
     if (count == LANES && batch_stride == 1) {
-      for (long e = 0; e < entries; ++e) {
-        const REAL *row = a + e * entry_stride + first;
-        for (long lane = 0; lane < LANES; ++lane) work[e * LANES + lane] = row[lane];
-      }
+      for (long e = 0; e < entries; ++e)
+        memcpy(work + e * LANES, a + e * entry_stride + first, sizeof(REAL) * LANES);
     } else {
       for (long lane = 0; lane < LANES; ++lane) {
         if (lane < count) {

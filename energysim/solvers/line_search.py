@@ -27,7 +27,11 @@ NOISE_ALLOWANCE = 4.0
 
 
 def energy_noise(
-    objective: Objective, x: Tensor, energy: Tensor, samples: int = NOISE_SAMPLES,
+    objective: Objective,
+    x: Tensor,
+    energy: Tensor,
+    samples: int = NOISE_SAMPLES,
+    *,
     replicated: Objective | None = None,
 ) -> Tensor:
     """The rounding noise of E near `x`, measured: its spread over positions a few ulps away, `[B]`, in J.
@@ -82,9 +86,11 @@ def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor 
     return torch.fmax(_rounding(x, energy), noise)
 
 
-def _noise_allowance(objective: Objective, x: Tensor, energy: Tensor) -> Tensor:
-    # the measured noise of E near `x`, times `NOISE_ALLOWANCE`, `[B]`, in J
-    return NOISE_ALLOWANCE * energy_noise(objective, x, energy)
+def _noise_allowance(
+    objective: Objective, x: Tensor, energy: Tensor, replicated: Objective | None = None
+) -> Tensor:
+    # the measured noise of E near `x` (`replicated`: see `energy_noise`) × `NOISE_ALLOWANCE`, `[B]`, in J
+    return NOISE_ALLOWANCE * energy_noise(objective, x, energy, replicated=replicated)
 
 
 def _sufficient_decrease(
@@ -204,8 +210,8 @@ def line_step(
             else:
                 # every sample of every row in one evaluation: the objective of the rows repeated
                 replicated = restrict(rows.repeat(NOISE_SAMPLES))
-                spread = energy_noise(objective, x[rows], energy[rows], replicated=replicated)
-                known = known.index_copy(0, rows, NOISE_ALLOWANCE * spread)
+                allowance = _noise_allowance(objective, x[rows], energy[rows], replicated)
+                known = known.index_copy(0, rows, allowance)
             measured_noise[0] = known
         return _noise_floor(objective, x, energy, known)
 
