@@ -82,6 +82,43 @@ def test_every_element_lies_in_one_level_or_two_adjacent(name: str) -> None:
     assert int(widths.min()) >= 1 and int(levels.min()) == 0
 
 
+def _vertex_bandwidth(place: torch.Tensor, elements: torch.Tensor) -> int:
+    """The largest distance in the order `place` (`[n]`, vertex → position) of two vertices that
+    share an element."""
+    corners = place[elements]
+    return int((corners[:, :, None] - corners[:, None, :]).abs().max())
+
+
+@pytest.mark.parametrize("name", ["worm", "tet_box", "tri_box", "quadruped"])
+def test_level_order_is_a_narrow_band(name: str) -> None:
+    # the band solves factorise in the layout's order at a cost ∝ u². Held to two independent
+    # orders of the same graph: the same levels with each in vertex-index order, and (in 3D, where
+    # the creatures are) SciPy's reverse Cuthill–McKee ordering
+    mesh = _meshes()[name]
+    elements, n = mesh.elements, mesh.vertices.shape[0]
+    dim = mesh.vertices.shape[1]
+    layout = level_layout_of([elements], torch.zeros(1, n, dim, dtype=torch.float64))
+    place = layout.band_position.reshape(n, dim)[:, 0] // dim  # the DOFs of a vertex are consecutive
+    ours = _vertex_bandwidth(place, elements)
+    assert layout.half_bandwidth == dim * ours + dim - 1
+    levels = vertex_levels([elements], n)
+    index_order = torch.empty(n, dtype=torch.int64)
+    index_order[torch.sort(levels, stable=True).indices] = torch.arange(n)
+    assert ours <= _vertex_bandwidth(index_order, elements)
+    if dim == 3:
+        sparse = pytest.importorskip("scipy.sparse")
+        csgraph = pytest.importorskip("scipy.sparse.csgraph")
+        pairs = elements[:, :, None].expand(-1, -1, dim + 1), elements[:, None, :].expand(-1, dim + 1, -1)
+        rows, cols = (pair.reshape(-1).numpy() for pair in pairs)
+        graph = sparse.csr_matrix((torch.ones(rows.size).numpy(), (rows, cols)), shape=(n, n))
+        reverse = torch.as_tensor(csgraph.reverse_cuthill_mckee(graph, symmetric_mode=True).copy())
+        reference = torch.empty(n, dtype=torch.int64)
+        reference[reverse.long()] = torch.arange(n)
+        assert ours <= _vertex_bandwidth(reference, elements)
+    if name == "worm":
+        assert ours == 10  # 14 with each level in vertex-index order (u = 32 against 44)
+
+
 def test_worm_levels_are_cross_sections() -> None:
     # the worm is a 16 × 3 × 3 vertex grid along x: levels from one end are at most 9 vertices wide,
     # and there are at least 16 of them (a dense factorisation costs ≈ 100× more)

@@ -2,11 +2,12 @@
 a batch the C kernel of `energysim.linalg.native` that factorises four systems at once.
 
 A long body couples each vertex only to near neighbours. With the DOFs numbered level by level
-(`LevelLayout.band_order`, Cuthill–McKee levels) its Hessian is a band matrix of half-bandwidth u,
-and a band Cholesky factorisation costs about N·u² flops against a dense one's N³/3. For the worm
-(N = 432, u = 44) a factorisation and solve in lower band storage takes 0.25 ms in the solver
-against 1.26 ms for the dense Cholesky and solve it replaced (profiled on one core); the compiled
-Hessian is assembled straight into band storage (`band_positions`). Unlike
+(`LevelLayout.band_order`, Cuthill–McKee levels and order) its Hessian is a band matrix of
+half-bandwidth u, and a band Cholesky factorisation costs about N·u² flops against a dense one's
+N³/3 (the worm: N = 432, u = 32). For N = 432, u = 44 a factorisation and solve in lower band
+storage takes 0.25 ms in the solver against 1.26 ms for the dense Cholesky and solve it replaced
+(profiled on one core); the compiled Hessian is assembled straight into band storage
+(`band_positions`). Unlike
 the block-tridiagonal solve, it is one LAPACK call per system, with no Python loop over levels, so it
 pays for a single body too. LAPACK has no batched band routine, so on its path a batch is a loop
 over entries; the C kernel interleaves four systems per SIMD vector instead (`solve_bands_in_tiles`:
@@ -38,7 +39,7 @@ BandFactor = np.ndarray
 BAND_MARGIN = 6
 # Entries of a batch are factorised one LAPACK call each; past a few, the batched level solve wins.
 BAND_MAX_BATCH = 4
-# Systems of the worm's size (N = 432, u = 44) took 0.33 ms in one tile against LAPACK's 0.59 ms
+# Band systems of N = 432, u = 44 took 0.33 ms in one tile against LAPACK's 0.59 ms
 # for three, 0.35 against 0.41 for two and 0.37 against 0.19 for one (`solve_bands_in_tiles`)
 TILE_MIN_BATCH = 3
 TILE = 4

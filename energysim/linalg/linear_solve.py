@@ -212,7 +212,7 @@ def level_layout_of(element_groups: Sequence[Tensor], like: Tensor) -> LevelLayo
 
 def cheapest_method(element_groups: Sequence[Tensor], like: Tensor, *, compiled: bool = False) -> str:
     """"dense", "banded" or "levels", the cheapest by the cost estimates for a Hessian whose blocks
-    couple the vertices of `element_groups` (measured on the worm, N = 432, L = 18, S = 27, u = 44):
+    couple the vertices of `element_groups` (measured on the worm, N = 432, L = 18, S = 27):
     banded for one worm on the CPU (dense on CUDA), levels for batches of them (≈ 6× faster per
     direction at B = 16). With `compiled` the Hessian can be assembled by a compiled function
     straight into band storage (not into level blocks), which makes the band path the cheaper one

@@ -78,7 +78,7 @@ class NewtonCG(Solver):
             vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
             picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18,
-            S = 27, u = 44; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
+            S = 27; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
             levels for batches of them (≈ 6× faster per Newton direction at B = 16); with
             `compile=True` banded on the CPU for any batch (its Hessian is then assembled in band
             storage by a compiled function); on a GPU, compiled, the level blocks are assembled by
