@@ -119,6 +119,30 @@ def test_level_order_is_a_narrow_band(name: str) -> None:
         assert ours == 10  # 14 with each level in vertex-index order (u = 32 against 44)
 
 
+@pytest.mark.parametrize("name", ["worm", "tet_box", "tri_box", "quadruped"])
+def test_levels_cost_the_least_of_every_start(name: str) -> None:
+    # a mesh this small tries every vertex as the levels' start: the cost L·s³ of the levels chosen
+    # is the least of every start's breadth-first levels, found here by a plain Python search
+    mesh = _meshes()[name]
+    n = mesh.vertices.shape[0]
+    neighbours: list[set[int]] = [set() for _ in range(n)]
+    for element in mesh.elements.tolist():
+        for vertex in element:
+            neighbours[vertex].update(element)
+    least = None
+    for start in range(n):
+        frontier, seen, widths = [start], {start}, []
+        while frontier:
+            widths.append(len(frontier))
+            frontier = [w for v in frontier for w in neighbours[v] if w not in seen]
+            frontier = list(dict.fromkeys(frontier))
+            seen.update(frontier)
+        cost = len(widths) * max(widths) ** 3
+        least = cost if least is None else min(least, cost)
+    widths = torch.bincount(vertex_levels([mesh.elements], n))
+    assert widths.numel() * int(widths.max()) ** 3 == least
+
+
 def test_worm_levels_are_cross_sections() -> None:
     # the worm is a 16 × 3 × 3 vertex grid along x: levels from one end are at most 9 vertices wide,
     # and there are at least 16 of them (a dense factorisation costs ≈ 100× more)
