@@ -221,6 +221,42 @@ def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> Non
     assert float(alone.x.abs().max()) < 1e-12 and float(alone.energy.abs().max()) < 1e-20
 
 
+class _Quartic(es.EnergyTerm):
+    """E = ‖x‖⁴, in J (∇E = 4‖x‖²x): a backtracking search on it ends away from the minimum."""
+
+    def forward(self, x: torch.Tensor, action: torch.Tensor | None = None) -> torch.Tensor:
+        return (x * x).sum(dim=(-1, -2)) ** 2
+
+
+def test_an_entry_backtracking_alone_gets_the_gradient_where_it_stops_without_another_call() -> None:
+    # from x = 1 along d = −37 the search refuses t = 1 (x = −36) and t = 0.1 (x = −2.7) and accepts
+    # t ≈ 0.011 (x ≈ 0.59, E ≈ 0.12 < 1). The gradient it returns is ∇E = 4x³ there, taken in the
+    # same call as the accepted energy: the objective of the row evaluates twice, not three times
+    from energysim.objective.objective import Objective
+    from energysim.solvers.line_search import line_step
+
+    def quartic() -> Objective:
+        return Objective([_Quartic()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
+
+    x = torch.ones(3, 1, 1, dtype=torch.float64)
+    direction = -torch.ones_like(x) * torch.tensor([37.0, 0.2, 0.2], dtype=torch.float64)[:, None, None]
+    parts = []
+
+    def restrict(rows: torch.Tensor) -> Objective:
+        parts.append(quartic())
+        return parts[-1]
+
+    objective = quartic()
+    energy, gradient = objective.energy_and_gradient(x)
+    result = line_step(objective, x, energy, gradient, direction, restrict=restrict)
+    assert 0.01 <= float(result.step[0]) <= 0.05 and result.step[1:].tolist() == [1.0, 1.0]
+    assert float(result.x[0]) == pytest.approx(1.0 - 37.0 * float(result.step[0]), rel=1e-14)
+    assert 0.0 < float(result.energy[0]) < float(energy[0])
+    assert torch.allclose(result.gradient, 4.0 * result.x**3, rtol=1e-14, atol=0)
+    assert torch.allclose(result.energy, result.x.reshape(-1) ** 4, rtol=1e-14, atol=0)
+    assert len(parts) == 1 and parts[0].grad_evals == 2 and parts[0].energy_evals == 0
+
+
 class _RaisedBowl(es.EnergyTerm):
     """E = C + ½ k ‖x‖², in J, with C = 2³⁹ J: its 64 ulps (7.8e-3 J) are the allowance for rounding,
     as a large potential far from its datum makes them (float32's 64 ulps of a worm's 0.18 J are 1.4e-6 J)."""

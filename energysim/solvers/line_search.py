@@ -268,19 +268,20 @@ def line_step(
     # the energy cannot tell these from no change: their derivatives can
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
-        return LineStep(
-            initial,
-            trial_x,
-            trial_energy,
-            trial_gradient,
-            trial_residual,
-            unjudged & ~judged,
-            rounding,
-            measured_noise[0],
-        )
+        found = (trial_energy, trial_gradient, trial_residual)
+        return LineStep(initial, trial_x, *found, unjudged & ~judged, rounding, measured_noise[0])
     refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
     part = restrict(refusing) if alone(refusing) else None
     if part is not None:
+        evaluated: list[tuple[Tensor, Tensor, Tensor]] = []
+
+        def energy_with_gradient(points: Tensor) -> Tensor:
+            # the gradient too, in the same call: where the search ends with every row accepted, its
+            # last evaluation is at every row's final step, and no call of its own is needed for it
+            values, gradients = part.energy_and_gradient(points)
+            evaluated[:] = [(points, values, gradients)]
+            return values
+
         steps, _, _ = backtracking_line_search(
             part,
             x[refusing],
@@ -292,9 +293,13 @@ def line_step(
             rounding=rounding[refusing],
             initial_energy=trial_energy[refusing],
             initial_refused=True,
+            evaluate=energy_with_gradient,
         )
-        moved = x[refusing] + steps[:, None, None] * direction[refusing]
-        moved_energy, moved_gradient = part.energy_and_gradient(moved)
+        if evaluated and bool((steps > 0).all()):
+            moved, moved_energy, moved_gradient = evaluated[0]
+        else:
+            moved = x[refusing] + steps[:, None, None] * direction[refusing]
+            moved_energy, moved_gradient = part.energy_and_gradient(moved)
         step = initial.index_copy(0, refusing, steps)
         x_new = trial_x.index_copy(0, refusing, moved)
         new_energy = trial_energy.index_copy(0, refusing, moved_energy)
@@ -315,16 +320,8 @@ def line_step(
         )
         x_new = x + step[:, None, None] * direction
         new_energy, new_gradient = objective.energy_and_gradient(x_new)
-    return LineStep(
-        step,
-        x_new,
-        new_energy,
-        new_gradient,
-        objective.residual(new_gradient),
-        unjudged & ~judged,
-        rounding,
-        measured_noise[0],
-    )
+    found = (new_energy, new_gradient, objective.residual(new_gradient))
+    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0])
 
 
 def backtracking_line_search(
@@ -340,6 +337,7 @@ def backtracking_line_search(
     rounding: Tensor | None = None,
     initial_energy: Tensor | None = None,
     initial_refused: Tensor | bool = False,
+    evaluate: Callable[[Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
@@ -366,6 +364,9 @@ def backtracking_line_search(
         initial_energy: E at `initial_step` `[B]`, if the caller has evaluated it already.
         initial_refused: entries `[B]` (or all, True) whose first trial the caller has refused
             already, on a test this energy-only search cannot make (`line_step`'s derivatives).
+        evaluate: E at positions `[B, n, d]` for every trial of the loop, in place of
+            `objective.energy` (`line_step` takes the gradient in the same call). Each evaluates
+            every entry at its current step, accepted ones included.
 
     Returns:
         step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
@@ -382,7 +383,7 @@ def backtracking_line_search(
     refused = torch.as_tensor(initial_refused, device=x.device) & ~unjudged
     for _ in range(max_halvings):
         if trial is None:
-            trial = objective.energy(x + step[:, None, None] * direction)
+            trial = (evaluate or objective.energy)(x + step[:, None, None] * direction)
         ok = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
         ok, refused = ok & ~accepted & ~refused, torch.zeros_like(accepted)
         new_energy = torch.where(ok, trial, new_energy)
