@@ -135,10 +135,11 @@ def level_ranks(levels: Tensor, element_groups: Sequence[Tensor], num_vertices: 
     unplaced = num_vertices  # the "place" of a vertex not ordered yet: after every real one
     place = torch.full((num_vertices,), unplaced, dtype=torch.int64, device=levels.device)
     ranks = torch.empty_like(levels)
+    source_level, target_level = levels[source], levels[target]
     offset = 0
     for level in range(int(levels.max()) + 1 if levels.numel() else 0):
         members = torch.nonzero(levels == level).flatten()
-        back = (levels[source] == level) & (levels[target] == level - 1)
+        back = (source_level == level) & (target_level == level - 1)
         earliest = torch.full_like(place, unplaced).scatter_reduce(
             0, source[back], place[target[back]], reduce="amin"
         )

@@ -178,7 +178,8 @@ def line_step(
     that minimiser too: in float32, steps twice the way to the minimum pass on the allowance, leave
     E where it was, and stall Newton far above its tolerance. A step neither can judge is taken
     whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
-    (`backtracking_line_search`) and evaluates the gradient where it stopped.
+    (`backtracking_line_search`) and evaluates the gradient where it stopped (alone, with each trial's
+    energy: where every row accepts, the last trial is where they stop, and needs no call of its own).
 
     `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
     it is given and at most half of the entries refuse their trial, only those backtrack, on their
@@ -276,8 +277,6 @@ def line_step(
         evaluated: list[tuple[Tensor, Tensor, Tensor]] = []
 
         def energy_with_gradient(points: Tensor) -> Tensor:
-            # the gradient too, in the same call: where the search ends with every row accepted, its
-            # last evaluation is at every row's final step, and no call of its own is needed for it
             values, gradients = part.energy_and_gradient(points)
             evaluated[:] = [(points, values, gradients)]
             return values
@@ -344,12 +343,8 @@ def backtracking_line_search(
     Each refused step t is replaced by the minimiser of the quadratic through E(0), the slope at 0
     and E(t), kept within [t/10, t/2] (halving where that quadratic has no minimum, or E(t) is not
     finite): where a direction is far too long, as an indefinite Hessian's shifted one can be, one
-    interpolation lands near the acceptable step that several halvings would reach. The first
-    trial's energy comes from the caller where it has it (`initial_energy`). On 16 worms with random
-    actions a search took 1.6 energy evaluations instead of 4.0, and an env step 7% less time than
-    halving with that reuse. The cost: against a barrier the quadratic model under-estimates the
-    step that passes, and the worm's walk took 7.21 Newton iterations per step instead of 6.87
-    (about 5% more time).
+    interpolation lands near the acceptable step that several halvings would reach (docs/solvers.md
+    weighs it). The first trial's energy comes from the caller where it has it (`initial_energy`).
 
     Near convergence the energy change falls below the energy's rounding error, so a rise within
     that error counts as no increase; and where even the full step's predicted decrease is below
@@ -364,9 +359,8 @@ def backtracking_line_search(
         initial_energy: E at `initial_step` `[B]`, if the caller has evaluated it already.
         initial_refused: entries `[B]` (or all, True) whose first trial the caller has refused
             already, on a test this energy-only search cannot make (`line_step`'s derivatives).
-        evaluate: E at positions `[B, n, d]` for every trial of the loop, in place of
-            `objective.energy` (`line_step` takes the gradient in the same call). Each evaluates
-            every entry at its current step, accepted ones included.
+        evaluate: E at positions `[B, n, d]` in place of `objective.energy`, for every trial of the
+            loop; each evaluates every entry at its current step, accepted ones included.
 
     Returns:
         step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
