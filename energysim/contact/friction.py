@@ -9,6 +9,13 @@ with the mollifier f0 (ipc-toolkit's `smooth_friction_mollifier`): f0(y) = y²(1
 for y < ε and y beyond, ε = ε_v h. Its force −μλ f1(‖u‖) u/‖u‖ has magnitude μλ once the vertex
 slides faster than ε_v (kinetic friction) and ramps linearly to zero below (static friction as
 a stiff spring, up to a creep velocity of order ε_v). D is convex in x.
+
+Along a sliding vertex's slip D is linear, so Newton's model has no friction curvature there: a
+vertex that sticks at the solution is sent through the static zone to slide the other way, and
+the next model sends it back (in one dimension, a two-cycle). Where an iteration reversed a
+vertex's slip, its next Hessian block takes the curvature f1(y)/y along the slip as well as across
+it: the Hessian of the quadratic that touches f0(‖u‖) at u and lies above it everywhere, whose
+minimiser cannot overshoot (`curvature_hint`; what it saves is in docs/contact.md).
 """
 
 from __future__ import annotations
@@ -48,16 +55,23 @@ def mollified_slip_gradient(u: Tensor, smoothing: float | Tensor) -> Tensor:
     return over_length[..., None] * u
 
 
-def mollified_slip_hessian(u: Tensor, smoothing: float | Tensor, projector: Tensor) -> Tensor:
+def mollified_slip_hessian(
+    u: Tensor, smoothing: float | Tensor, projector: Tensor, majorized: Tensor | None = None
+) -> Tensor:
     """∇²ₓ f0(‖P(x − x_n)‖) = (f1/y) P + (f1′ − f1/y) ûûᵀ, shape `[..., d, d]` (1/m).
 
     Below ε: f1/y = (2 − y/ε)/ε and f1′ − f1/y = −y/ε², both finite at y = 0; beyond: 1/y and −1/y.
+    `majorized` (bool, `u`'s shape without its last axis): where set and y ≥ ε, (f1/y) P alone, the
+    Hessian of the majorizing quadratic q(v) = f0(y) + (f1(y)/2y)(‖v‖² − y²) of f0(‖v‖) (f1(y)/y
+    falls as y grows, so q ≥ f0 everywhere, with equal value and slope at u).
     """
     length, _ = _norm_and_square(u)
     below = length < smoothing
     safe_length = torch.where(below, smoothing, length)
     over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
     along = torch.where(below, -length / smoothing**2, -1.0 / safe_length)
+    if majorized is not None:
+        along = torch.where(majorized & ~below, torch.zeros_like(along), along)
     unit = u / torch.where(length > 0, length, torch.ones_like(length))[..., None]
     outer = unit[..., :, None] * unit[..., None, :]
     return over_length[..., None, None] * projector + along[..., None, None] * outer
@@ -81,6 +95,7 @@ class LaggedFriction(ElementEnergy):
 
     has_gradient_kernel = True
     has_hessian_kernel = True
+    has_curvature_hint = True
 
     def __init__(
         self,
@@ -99,6 +114,8 @@ class LaggedFriction(ElementEnergy):
         self.weight = friction * normal_force
         # a tensor, like the inertia's M/h²: compiled evaluations then need no new graph for a new h
         self.smoothing = torch.as_tensor(smoothing, dtype=normals.dtype, device=normals.device)
+        # the vertices whose Hessian block is the majorizer's (`curvature_hint`), `[B, m]`
+        self.majorized = torch.zeros(normal_force.shape, dtype=torch.bool, device=normals.device)
 
     def rows(self, entries: Tensor) -> LaggedFriction:
         """This step's friction for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
@@ -106,6 +123,7 @@ class LaggedFriction(ElementEnergy):
             previous_positions=self.previous_positions[entries],
             projector=self.projector[entries],
             weight=self.weight[entries],
+            majorized=self.majorized[entries],
         )
 
     def _slip(self, element_positions: Tensor) -> Tensor:
@@ -128,6 +146,28 @@ class LaggedFriction(ElementEnergy):
         held[:, vertices] = torch.where(touching, x_prev[:, vertices], candidate[:, vertices])
         return held
 
+    def curvature_hint(self, previous: Tensor, current: Tensor) -> Tensor:
+        """The sliding vertices whose slip points against its direction at `previous` (`[B, n, d]`,
+        an iteration's start; `current` its end), `[B, m]` bool: their next Hessian blocks are the
+        majorizer's.
+
+        Only the last iteration's reversals count: marking every vertex that ever reversed within
+        a step, or every sliding vertex, would keep the majorizer where a vertex slides at the
+        solution, and Newton's convergence there would be linear, not quadratic.
+        """
+        # matrix products, not sums over a last axis of 3, which are slow in eager code
+        vertices = self.element_vertices[:, 0]
+        after = self.projector @ (current.index_select(1, vertices) - self.previous_positions)[..., None]
+        # the projector is symmetric and idempotent: P(x₀ − x_n)·u = (x₀ − x_n)·u
+        before = (previous.index_select(1, vertices) - self.previous_positions)[..., None, :]
+        before_along = (before @ after)[..., 0, 0]
+        sliding = torch.linalg.vector_norm(after[..., 0], dim=-1) > self.smoothing
+        return sliding & (before_along < 0)
+
+    def set_curvature_hint(self, hint: Tensor) -> None:
+        """Record `curvature_hint`'s marks for the next Hessian blocks."""
+        self.majorized.copy_(hint)
+
     def element_energy(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
         return self.weight * mollified_slip(self._slip(element_positions), self.smoothing)
 
@@ -140,7 +180,8 @@ class LaggedFriction(ElementEnergy):
         return energy, (self.weight[..., None] * mollified_slip_gradient(slip, self.smoothing))[..., None, :]
 
     def element_hessian(self, element_positions: Tensor, action: Tensor | None) -> Tensor:
-        """Exact per-vertex Hessian blocks `[B, m, d, d]`, in N/m (convex: positive semidefinite)."""
+        """Per-vertex Hessian blocks `[B, m, d, d]`, in N/m, positive semidefinite: exact, or the
+        majorizer's where the solver marked the vertex (`curvature_hint`)."""
         slip = self._slip(element_positions)
-        hessian = mollified_slip_hessian(slip, self.smoothing, self.projector)
+        hessian = mollified_slip_hessian(slip, self.smoothing, self.projector, self.majorized)
         return self.weight[..., None, None] * hessian

@@ -13,8 +13,8 @@ What else a term offers is declared once, by its class, never probed at run time
   `StepLimitingEnergy` (a barrier that bounds how far a step may go: obstacles),
   `DissipativeEnergy` (no stored energy, a velocity-dependent force: viscosity);
 - its kernels and hooks, by class flags: `is_linear`, `has_constant_hessian`, `has_gradient_kernel`,
-  `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `is_actuated`,
-  `is_translation_invariant`.
+  `has_hessian_kernel`, `has_batch_last_kernel`, `has_lagged_terms`, `has_curvature_hint`,
+  `is_actuated`, `is_translation_invariant`.
 
 The solvers, the compiled evaluations and the integrators ask only these (`isinstance` or the
 flag), so a term that declares a kernel must implement it, and one that does not is never asked.
@@ -43,6 +43,8 @@ class EnergyTerm(nn.Module):
         has_gradient_kernel: `value_and_gradient` gives E and ∇E in closed form (never None); the
             compiled evaluations call only terms that declare it.
         has_lagged_terms: `lagged_terms` may add terms to a step (friction, viscosity).
+        has_curvature_hint: Newton–CG shows each iteration's start and end to `curvature_hint`
+            and records what it returns, which may change the term's next Hessian blocks (friction).
         is_actuated: the term reads the action; `num_actuators` says how many entries.
         is_translation_invariant: E(x + c) = E(x) for every shift c common to all vertices: the
             energy reads differences of positions only (elastic terms, muscles, viscosity). Float32
@@ -54,6 +56,7 @@ class EnergyTerm(nn.Module):
     has_constant_hessian: bool = False
     has_gradient_kernel: bool = False
     has_lagged_terms: bool = False
+    has_curvature_hint: bool = False
     is_actuated: bool = False
     is_translation_invariant: bool = False
 
@@ -102,6 +105,19 @@ class EnergyTerm(nn.Module):
         step's start `x_prev`), in this term's view; default `candidate`. A step term overrides it
         where a prediction is known to land where Newton's quadratic model of the term is poor."""
         return candidate
+
+    def curvature_hint(self, previous: Tensor, current: Tensor) -> Tensor:
+        """What one Newton iteration, from `previous` to `current` (`[B, n, d]`), tells this term about
+        its next Hessian blocks, where the class declares `has_curvature_hint`: a term whose exact
+        Hessian misleads Newton in a way the last step shows marks where to give a safer block
+        (`set_curvature_hint` records it); asking changes nothing.
+        The blocks stay a positive semidefinite model of the term, so the solve still stops on the
+        residual alone; the adjoint builds the step's terms anew, with exact blocks."""
+        raise NotImplementedError(f"{type(self).__name__} declares no curvature hint")
+
+    def set_curvature_hint(self, hint: Tensor) -> None:
+        """Record a `curvature_hint` for the next Hessian blocks."""
+        raise NotImplementedError(f"{type(self).__name__} declares no curvature hint")
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """Terms this one adds to a single step's objective, built from the positions at the step's

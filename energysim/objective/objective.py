@@ -110,6 +110,14 @@ class Objective:
                 return result
         return evaluation.energy_and_gradient(self.terms, self.anchor, self.action, self.free, x)
 
+    def update_curvature_hints(self, previous: Tensor, current: Tensor) -> None:
+        """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
+        adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). Eager: a few small
+        operations (0.18 ms a call for 64 worms; compiled, the call's guards cost more)."""
+        for term in self.terms:
+            if term.has_curvature_hint:
+                term.set_curvature_hint(term.curvature_hint(previous, current))
+
     def residual(self, gradient: Tensor) -> Tensor:
         """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""
         scaled = gradient * self.residual_scale[:, None]

@@ -240,7 +240,8 @@ class NewtonCG(Solver):
             worse = active & search.unjudged & (search.residual >= residual)
             stalled = stalled | worse
             keep = worse[:, None, None]
-            x = torch.where(keep, x, search.x)
+            previous, x = x, torch.where(keep, x, search.x)
+            objective.update_curvature_hints(previous, x)
             gradient = torch.where(keep, gradient, search.gradient)
             new_energy = torch.where(worse, energy, search.energy)
             residual = torch.where(worse, residual, search.residual)
