@@ -113,7 +113,7 @@ class Objective:
     def update_curvature_hints(self, previous: Tensor, current: Tensor) -> None:
         """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
         adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). Eager: a few small
-        operations (0.18 ms a call for 64 worms; compiled, the call's guards cost more)."""
+        operations, which a compiled call's guards would cost more than (docs/contact.md)."""
         for term in self.terms:
             if term.has_curvature_hint:
                 term.set_curvature_hint(term.curvature_hint(previous, current))
