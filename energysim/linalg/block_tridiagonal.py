@@ -83,34 +83,33 @@ def vertex_levels(element_groups: Sequence[Tensor], num_vertices: int) -> Tensor
     neighbours = (edges[0], edges[1])
     degree = torch.bincount(edges[0], minlength=num_vertices)
     levels = torch.full((num_vertices,), -1, dtype=torch.int64, device=device)
+
+    def levels_from(vertex: int) -> tuple[Tensor, int, int]:
+        # the breadth-first levels from `vertex` (−1 outside its component), their cost L·S³ and L
+        start = torch.zeros(num_vertices, dtype=torch.bool, device=device)
+        start[vertex] = True
+        level = _breadth_first(neighbours, start, num_vertices)
+        widths = torch.bincount(level[level >= 0])
+        return level, widths.numel() * int(widths.max()) ** 3, widths.numel()
+
     offset = 0
     while bool((levels < 0).any()):
-        seed = int(torch.nonzero(levels < 0)[0])
-        start = torch.zeros(num_vertices, dtype=torch.bool, device=device)
-        start[seed] = True
+        vertex = int(torch.nonzero(levels < 0)[0])
         best, best_cost, depth = None, None, -1
         for _ in range(_PERIPHERAL_SWEEPS):
-            level = _breadth_first(neighbours, start, num_vertices)
-            reached = level >= 0
-            widths = torch.bincount(level[reached])
-            cost = widths.numel() * int(widths.max()) ** 3
+            level, cost, count = levels_from(vertex)
             if best is None or cost < best_cost:
                 best, best_cost = level, cost
-            if widths.numel() - 1 <= depth:
+            if count - 1 <= depth:
                 break  # the eccentricity stopped growing: the start is pseudo-peripheral
-            depth = widths.numel() - 1
+            depth = count - 1
             # restart from a vertex of least degree in the last level
             last = torch.nonzero(level == depth).flatten()
-            start = torch.zeros_like(start)
-            start[last[torch.argmin(degree[last])]] = True
+            vertex = int(last[torch.argmin(degree[last])])
         component = torch.nonzero(best >= 0).flatten()
         if component.numel() <= _EVERY_START_MAX_VERTICES:
             for vertex in component.tolist():
-                start = torch.zeros_like(start)
-                start[vertex] = True
-                level = _breadth_first(neighbours, start, num_vertices)
-                widths = torch.bincount(level[level >= 0])
-                cost = widths.numel() * int(widths.max()) ** 3
+                level, cost, _ = levels_from(vertex)
                 if cost < best_cost:
                     best, best_cost = level, cost
         reached = best >= 0

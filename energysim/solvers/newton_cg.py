@@ -77,17 +77,16 @@ class NewtonCG(Solver):
             (elsewhere it factorises dense). "levels": block-tridiagonal Cholesky over breadth-first
             vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
-            picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18,
-            S = 27; then `prefer_band`): banded for one worm on the CPU (dense on CUDA),
-            levels for batches of them (≈ 6× faster per Newton direction at B = 16); with
-            `compile=True` banded on the CPU for any batch (its Hessian is then assembled in band
-            storage by a compiled function); on a GPU, compiled, the level blocks are assembled by
-            a compiled function too (`Objective.level_hessian`).
-        compact_below: in a batch, once at most this fraction of the entries still iterates, go on
-            with those alone (`Objective.subset`: the step builds their objective from their slice
-            of the state), instead of computing on every entry until the slowest has converged.
-            Each later halving compacts again. 0 turns it off. On 64 worms with random actions
-            the slowest entry took about twice the mean number of iterations.
+            picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18, S = 27;
+            then `prefer_band`): banded for one worm on the CPU (dense on CUDA), levels for batches
+            of them (≈ 6× faster per Newton direction at B = 16); with `compile=True` banded on the
+            CPU for any batch (its Hessian is then assembled in band storage by a compiled
+            function); on a GPU, compiled, the level blocks by a compiled function too
+            (`Objective.level_hessian`).
+        compact_below: once at most this fraction of a batch's entries still iterates, go on with those alone
+            (`Objective.subset`: the step builds their objective from their slice of the state) rather than
+            compute on every entry until the slowest (on 64 randomly driven worms, about twice the mean
+            iterations) has converged; each later halving compacts again. 0 turns it off.
         project_hessian: project every element block to positive semidefinite (projected Newton,
             as IPC does) instead of truncating CG on negative curvature. Off by default: on the
             hard cases in the tests (inverted, scrambled and flattened bodies, 20 m/s impacts) the
