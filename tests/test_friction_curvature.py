@@ -100,6 +100,24 @@ def test_the_hint_marks_the_vertices_whose_slip_turned_back_and_still_slides():
     assert term.rows(torch.tensor([0, 0])).majorized.tolist() == [marks[0].tolist()] * 2
 
 
+def test_the_hint_marks_only_vertices_in_contact_and_follows_their_entries_and_rows():
+    # two entries, friction on state vertices 3 and 1 of 4 (in that order); in entry 0 vertex 1 has no
+    # normal force. Every slip reverses from 3ε to −2ε: only the vertices with friction are marked
+    state_vertices = torch.tensor([[3], [1]])
+    normal_force = torch.tensor([[1.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    previous_positions = torch.zeros(2, 2, 3, dtype=torch.float64)
+    normals = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand(2, 2, 3)
+    friction = torch.tensor(0.5, dtype=torch.float64)
+    term = LaggedFriction(state_vertices, previous_positions, normals, normal_force, friction, SMOOTHING)
+    previous = torch.zeros(2, 4, 3, dtype=torch.float64)
+    current = torch.zeros(2, 4, 3, dtype=torch.float64)
+    previous[:, :, 0], current[:, :, 0] = 3.0 * SMOOTHING, -2.0 * SMOOTHING
+    assert term.curvature_hint(previous, current).tolist() == [[True, False], [True, True]]
+    # a batch's rows in another order mark as those entries did
+    rows = term.rows(torch.tensor([1, 0]))
+    assert rows.curvature_hint(previous[[1, 0]], current[[1, 0]]).tolist() == [[True, True], [True, False]]
+
+
 def test_a_vertex_pulled_back_into_its_static_zone_rests_where_the_force_balance_says():
     # inertia k = m/h² pulling towards a = 0.6 mm against μλ = 10 N (k a = 6 N < μλ): the vertex
     # sticks at the root below ε of k(u − a) + μλ(2u/ε − u²/ε²) = 0. From a start sliding 2–10 mm

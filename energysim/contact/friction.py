@@ -116,15 +116,27 @@ class LaggedFriction(ElementEnergy):
         self.smoothing = torch.as_tensor(smoothing, dtype=normals.dtype, device=normals.device)
         # the vertices whose Hessian block is the majorizer's (`curvature_hint`), `[B, m]`
         self.majorized = torch.zeros(normal_force.shape, dtype=torch.bool, device=normals.device)
+        self._index_contacts()
+
+    def _index_contacts(self) -> None:
+        # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark (about a fifth of
+        # a walking worm's): their (entry, vertex) pairs, x_n and projectors, gathered once a step
+        entry, vertex = torch.nonzero(self.weight.detach() > 0, as_tuple=True)
+        self._contact_entry, self._contact_vertex = entry, self.element_vertices[vertex, 0]
+        self._contact_slot = entry * self.weight.shape[-1] + vertex  # in a flattened `[B, m]`
+        self._contact_start = self.previous_positions.detach()[entry, vertex]
+        self._contact_projector = self.projector.detach()[entry, vertex]
 
     def rows(self, entries: Tensor) -> LaggedFriction:
         """This step's friction for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
-        return self._with(
+        part = self._with(
             previous_positions=self.previous_positions[entries],
             projector=self.projector[entries],
             weight=self.weight[entries],
             majorized=self.majorized[entries],
         )
+        part._index_contacts()
+        return part
 
     def _slip(self, element_positions: Tensor) -> Tensor:
         displacement = element_positions[..., 0, :] - self.previous_positions
@@ -155,14 +167,18 @@ class LaggedFriction(ElementEnergy):
         a step, or every sliding vertex, would keep the majorizer where a vertex slides at the
         solution, and Newton's convergence there would be linear, not quadratic.
         """
-        # matrix products, not sums over a last axis of 3, which are slow in eager code
-        vertices = self.element_vertices[:, 0]
-        after = self.projector @ (current.index_select(1, vertices) - self.previous_positions)[..., None]
+        # eager, on the contact vertices alone (the others have no friction to mark), by matrix
+        # products, not sums over a last axis of 3, which are slow in eager code
+        batch, count, dim = *self.majorized.shape, current.shape[-1]
+        rows = self._contact_entry * current.shape[1] + self._contact_vertex
+        after = self._contact_projector @ (current.reshape(-1, dim)[rows] - self._contact_start)[..., None]
         # the projector is symmetric and idempotent: P(x₀ − x_n)·u = (x₀ − x_n)·u
-        before = (previous.index_select(1, vertices) - self.previous_positions)[..., None, :]
+        before = (previous.reshape(-1, dim)[rows] - self._contact_start)[..., None, :]
         before_along = (before @ after)[..., 0, 0]
         sliding = torch.linalg.vector_norm(after[..., 0], dim=-1) > self.smoothing
-        return sliding & (before_along < 0)
+        hint = torch.zeros(batch * count, dtype=torch.bool, device=current.device)
+        hint[self._contact_slot] = sliding & (before_along < 0)
+        return hint.reshape(batch, count)
 
     def set_curvature_hint(self, hint: Tensor) -> None:
         """Record `curvature_hint`'s marks for the next Hessian blocks."""
