@@ -119,8 +119,8 @@ class LaggedFriction(ElementEnergy):
         self._index_contacts()
 
     def _index_contacts(self) -> None:
-        # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark (about a fifth of
-        # a walking worm's): their (entry, vertex) pairs, x_n and projectors, gathered once a step
+        # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark: their (entry,
+        # vertex) pairs, x_n and projectors, gathered once a step rather than at every iteration
         entry, vertex = torch.nonzero(self.weight.detach() > 0, as_tuple=True)
         self._contact_entry, self._contact_vertex = entry, self.element_vertices[vertex, 0]
         self._contact_slot = entry * self.weight.shape[-1] + vertex  # in a flattened `[B, m]`
