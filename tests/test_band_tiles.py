@@ -5,6 +5,7 @@ replaced whole, and a clear fallback where no compiler builds it."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -223,3 +224,54 @@ def test_an_unloadable_cached_kernel_warns_and_leaves_lapack(
     monkeypatch.setattr(native, "_build", lambda: spoiled)
     with pytest.warns(RuntimeWarning, match="could not be built"):
         assert native.library() is None
+
+
+def _random_band_systems(batch: int, size: int, half_bandwidth: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random symmetric, strictly diagonally dominant (so positive definite) band matrices, dense
+    `[B, N, N]`, and their band storage in the natural order `[B, N, u + 1]`."""
+    generator = torch.Generator().manual_seed(size * 100 + half_bandwidth)
+    rows, columns = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    in_band = (rows - columns).abs() <= half_bandwidth
+    lower = torch.randn(batch, size, size, generator=generator, dtype=torch.float64).tril(-1) * in_band
+    dense = lower + lower.transpose(1, 2)
+    dense = dense + torch.diag_embed(dense.abs().sum(-1) + 1.0)
+    bands = torch.zeros(batch, size, half_bandwidth + 1, dtype=torch.float64)
+    for offset in range(half_bandwidth + 1):
+        bands[:, : size - offset, offset] = dense.diagonal(-offset, dim1=1, dim2=2)
+    return dense, bands
+
+
+@needs_compiler
+@pytest.mark.parametrize("single", [False, True])
+@pytest.mark.parametrize(("size", "half_bandwidth"), [(51, 7), (50, 7), (12, 11), (7, 2), (9, 0)])
+def test_band_systems_of_any_order_and_width_solve_as_dense_algebra(
+    size: int, half_bandwidth: int, single: bool
+) -> None:
+    # odd and even orders, a band as wide as the matrix, a diagonal matrix: the edges of the column
+    # pairs the wide build factorises; 19 systems fill wide tiles with a short last one where built
+    dense, bands = _random_band_systems(19, size, half_bandwidth)
+    layout = SimpleNamespace(band_order=torch.arange(size))
+    rhs = torch.randn(19, size, generator=torch.Generator().manual_seed(13), dtype=torch.float64)
+    solution, solved = banded.solve_bands_in_tiles(bands, rhs, layout, native.library(), single=single)
+    # float32 solves of these well-conditioned systems land within a few float32 ulps of float64's
+    _assert_dense_solutions(solution, solved, dense, rhs, SINGLE_RTOL if single else RTOL)
+
+
+@needs_compiler
+@pytest.mark.skipif(not native.has_wide_vectors(), reason="no AVX-512 on this machine: no wide kernels")
+@pytest.mark.parametrize("single", [False, True])
+def test_the_wide_tiles_give_the_narrow_tiles_solutions_to_the_last_bit(
+    single: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the same operations on every entry in the same order (`band_tiles.c`): tile width and column
+    # pairs change the speed, not one bit of a direction
+    kernels = native.library()
+    dense, bands, layout = _worm_systems([1e-4 * entry for entry in range(17)])
+    rhs = torch.randn(17, dense.shape[-1], generator=torch.Generator().manual_seed(14), dtype=dense.dtype)
+    name = "band_solve_tiles_single" if single else "band_solve_tiles"
+    assert native.tile_kernel(kernels, single=single, batch=17)[0] is getattr(kernels, f"{name}_wide")
+    wide = banded.solve_bands_in_tiles(bands, rhs, layout, kernels, single=single)
+    narrow_lanes = native.VECTOR_BYTES // (4 if single else 8)
+    monkeypatch.setattr(native, "tile_kernel", lambda *_, **__: (getattr(kernels, name), narrow_lanes))
+    narrow = banded.solve_bands_in_tiles(bands, rhs, layout, kernels, single=single)
+    assert torch.equal(wide[1], narrow[1]) and torch.equal(wide[0], narrow[0])

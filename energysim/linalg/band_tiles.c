@@ -2,37 +2,51 @@
  *
  * Input: the lower bands of B matrices, entry r of column i of matrix b (A_b[i + r, i], r = 0 .. w - 1,
  * w = u + 1) at a[(i * w + r) * entry_stride + b * batch_stride]; batch-last (batch_stride 1) is the
- * layout the compiled Hessian hands over. Each tile of LANES matrices (four in double precision,
- * eight in single) is gathered into a work buffer `[n, w, LANES]` (a short last tile padded with
- * identities), factorised and solved there while it is in cache. One SIMD vector holds the same
- * entry of the matrices of a tile, so every operation serves LANES systems, and a tile's columns
- * lie together, so the u columns a new column reads stay in cache.
+ * layout the compiled Hessian hands over. Each tile of LANES matrices (one SIMD vector of them: four
+ * doubles or eight floats in 32 bytes, twice as many in 64) is gathered into a work buffer
+ * `[n, w, LANES]` (a short last tile padded with identities), factorised and solved there while it is
+ * in cache. One SIMD vector holds the same entry of the matrices of a tile, so every operation serves
+ * LANES systems, and a tile's columns lie together, so the u columns a new column reads stay in cache.
  *
  * The factorisation is left-looking (column j is A[:, j] less the dot products of the rows of the
  * columns before it), with SB rows of column j accumulated in registers at a time: each load of
  * L[j, i] serves SB multiply-adds, where the right-looking update loads and stores every entry it
- * touches. LAPACK's ?pbtrf factorises one matrix per call and cannot use the batch.
+ * touches. With COLUMN_PAIRS (the 64-byte build, whose 32 vector registers hold both columns' sums)
+ * columns j and j + 1 are accumulated together, so each load of a row's L[R, i] serves two
+ * multiply-adds: for the quadruped's band (u = 101) that halves the traffic from the cache that
+ * bounds the factorisation. The operations on each entry, and their order, are those of the
+ * single-column form, so both give the same factors to the last bit. LAPACK's ?pbtrf factorises one
+ * matrix per call and cannot use the batch.
  *
- * The vector type is GCC's / Clang's vector extension: SSE2, AVX2 or NEON instructions, whichever
- * the compiler is told to target. Loads and stores go through memcpy so no alignment is assumed.
+ * The vector type is GCC's / Clang's vector extension: SSE2, AVX2, AVX-512 or NEON instructions,
+ * whichever the compiler is told to target. Loads and stores go through memcpy so no alignment is
+ * assumed.
  *
- * The file is built twice into one library (`energysim.linalg.native`): as it stands, in double
- * precision, four systems a 32-byte vector (`band_solve_tiles`), and with -DREAL=float
- * -DSUFFIX=_single, eight systems a vector in single precision (`band_solve_tiles_single`). Each
- * build reads bands of its own precision.
+ * The file is built several times into one library (`energysim.linalg.native`): as it stands, in
+ * double precision, four systems a 32-byte vector (`band_solve_tiles`); with -DREAL=float
+ * -DSUFFIX=_single, eight systems a vector in single precision (`band_solve_tiles_single`); and
+ * where the CPU has AVX-512, each again with -DVECTOR_BYTES=64 -DCOLUMN_PAIRS (suffix `_wide`).
+ * Each build reads bands of its own precision.
  */
 #include <math.h>
 #include <string.h>
 
 #ifndef REAL
 #define REAL double
+#endif
+#ifndef SUFFIX
 #define SUFFIX
 #endif
 #define JOIN_(a, b) a##b
 #define JOIN(a, b) JOIN_(a, b)
 
-typedef REAL lanes __attribute__((vector_size(32)));
-enum { LANES = 32 / sizeof(REAL), SB = 12 };
+#ifndef VECTOR_BYTES
+#define VECTOR_BYTES 32
+#endif
+
+typedef REAL lanes __attribute__((vector_size(VECTOR_BYTES)));
+/* PB: the rows of each of two columns in registers at a time (`factor_pair`, 2 PB accumulators) */
+enum { LANES = VECTOR_BYTES / sizeof(REAL), SB = 12, PB = 12 };
 
 static inline lanes load(const REAL *p) {
   lanes x;
@@ -42,12 +56,110 @@ static inline lanes load(const REAL *p) {
 
 static inline void store(REAL *p, lanes x) { memcpy(p, &x, sizeof x); }
 
+/* Store the pivots sqrt(sum) at `at` and return their inverses. A lane whose sum is not > 0 (NaN
+ * included) is marked in ok and goes on with a unit pivot, so that its factor stays finite where it
+ * can; the caller discards it. */
+static inline lanes pivot(REAL *restrict at, lanes sum, unsigned char *restrict ok) {
+  REAL pivots[LANES], inverses[LANES];
+  store(pivots, sum);
+  for (long lane = 0; lane < LANES; ++lane) {
+    if (!(pivots[lane] > 0.0)) {
+      ok[lane] = 0;
+      pivots[lane] = 1.0;
+    }
+    pivots[lane] = (REAL)sqrt(pivots[lane]);
+    inverses[lane] = 1 / pivots[lane];
+  }
+  store(at, load(pivots));
+  return load(inverses);
+}
+
+#ifdef COLUMN_PAIRS
+/* Columns j and j + 1 (j + 1 < n) of `factor_tile` at once, PB rows at a time. Rows are counted from
+ * j (R = j + s): column j holds s = 0 .. u, column j + 1 s = 1 .. u + 1. Both subtract the products
+ * with the columns i < j, sharing each load of L[R, i]; column j + 1's own term i = j is subtracted
+ * once column j is final, as the single-column form subtracts it last too. */
+static void factor_pair(REAL *restrict tile, long n, long w, long j, unsigned char *restrict ok) {
+  const long u = w - 1, column = w * LANES;
+  REAL *c0 = tile + j * column, *c1 = c0 + column;
+  const long rows = n - j < w + 1 ? n - j : w + 1;
+  const long first = j - u > 0 ? j - u : 0;
+  lanes inverse0 = (lanes){0} + 1, inverse1 = (lanes){0} + 1, coupling = (lanes){0}; /* L[j + 1, j] */
+  for (long s0 = 0; s0 < rows; s0 += PB) {
+    const long count = rows - s0 < PB ? rows - s0 : PB;
+    lanes sum0[PB], sum1[PB];
+    for (long q = 0; q < PB; ++q) {
+      const long s = s0 + q;
+      sum0[q] = q < count && s <= u ? load(c0 + s * LANES) : (lanes){0};
+      sum1[q] = q < count && s >= 1 ? load(c1 + (s - 1) * LANES) : (lanes){0};
+    }
+    /* columns i from `whole` on reach every row of the block (d + s0 + PB - 1 <= u, d = j - i) */
+    long whole = j - (u - s0 - PB + 1);
+    if (whole < first) whole = first;
+    for (long i = first; i < whole && i < j; ++i) {
+      const long d = j - i;
+      const REAL *li = tile + i * column;
+      const lanes l0 = load(li + d * LANES);
+      const lanes l1 = d < u ? load(li + (d + 1) * LANES) : (lanes){0}; /* L[j + 1, i], 0 off the band */
+      for (long q = 0; q < count && d + s0 + q <= u; ++q) {
+        const lanes x = load(li + (d + s0 + q) * LANES);
+        sum0[q] -= x * l0;
+        sum1[q] -= x * l1;
+      }
+    }
+    for (long i = whole; i < j; ++i) {
+      const long d = j - i;
+      const REAL *li = tile + i * column;
+      const lanes l0 = load(li + d * LANES), l1 = load(li + (d + 1) * LANES);
+      const REAL *rows_i = li + (d + s0) * LANES;
+      if (count == PB) {
+#pragma GCC unroll 16
+        for (long q = 0; q < PB; ++q) {
+          const lanes x = load(rows_i + q * LANES);
+          sum0[q] -= x * l0;
+          sum1[q] -= x * l1;
+        }
+      } else {
+        for (long q = 0; q < count; ++q) {
+          const lanes x = load(rows_i + q * LANES);
+          sum0[q] -= x * l0;
+          sum1[q] -= x * l1;
+        }
+      }
+    }
+    long q0 = 0;
+    if (s0 == 0) {
+      inverse0 = pivot(c0, sum0[0], ok);
+      q0 = 1;
+    }
+    for (long q = q0; q < count && s0 + q <= u; ++q) {
+      sum0[q] *= inverse0;
+      store(c0 + (s0 + q) * LANES, sum0[q]);
+    }
+    if (s0 == 0) coupling = sum0[1];
+    for (long q = 0; q < count; ++q) {
+      const long s = s0 + q;
+      if (s >= 1 && s <= u) sum1[q] -= sum0[q] * coupling;
+    }
+    long q1 = 0;
+    if (s0 == 0) {
+      inverse1 = pivot(c1, sum1[1], ok);
+      q1 = 2;
+    }
+    for (long q = q1; q < count; ++q) store(c1 + (s0 + q - 1) * LANES, sum1[q] * inverse1);
+  }
+}
+#endif
+
 /* Factorise one tile `[n, w, LANES]` in place; ok[lane] is set to 0 where that matrix is not positive
- * definite (a pivot not > 0, NaN included). Such a lane goes on with a unit pivot so that its
- * factor stays finite where it can; the caller discards it. */
+ * definite (a pivot not > 0, NaN included; see `pivot`). */
 static void factor_tile(REAL *restrict tile, long n, long w, unsigned char *restrict ok) {
   const long u = w - 1, column = w * LANES;
-  for (long j = 0; j < n; ++j) {
+  long j = 0;
+#ifdef COLUMN_PAIRS
+  for (; j + 1 < n; j += 2) factor_pair(tile, n, w, j, ok);
+#endif
+  for (; j < n; ++j) {
     const long rows = n - j < w ? n - j : w;
     REAL *cj = tile + j * column;
     lanes inverse_pivot = (lanes){0} + 1;
@@ -82,18 +194,7 @@ static void factor_tile(REAL *restrict tile, long n, long w, unsigned char *rest
       }
       long q0 = 0;
       if (s0 == 0) {
-        REAL pivot[LANES], inverse[LANES];
-        store(pivot, sum[0]);
-        for (long lane = 0; lane < LANES; ++lane) {
-          if (!(pivot[lane] > 0.0)) {
-            ok[lane] = 0;
-            pivot[lane] = 1.0;
-          }
-          pivot[lane] = (REAL)sqrt(pivot[lane]);
-          inverse[lane] = 1 / pivot[lane];
-        }
-        store(cj, load(pivot));
-        inverse_pivot = load(inverse);
+        inverse_pivot = pivot(cj, sum[0], ok);
         q0 = 1;
       }
       for (long q = q0; q < count; ++q) store(cj + (s0 + q) * LANES, sum[q] * inverse_pivot);

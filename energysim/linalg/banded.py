@@ -1,5 +1,6 @@
 """Band Cholesky solves of small Hessians on the CPU: LAPACK's `?pbtrf` / `?pbtrs` (scipy), or for
-a batch the C kernel of `energysim.linalg.native` that factorises four systems at once.
+a batch the C kernel of `energysim.linalg.native` that factorises four systems at once (eight with
+AVX-512, twice as many in float32).
 
 A long body couples each vertex only to near neighbours. With the DOFs numbered level by level
 (`LevelLayout.band_order`, Cuthill–McKee levels and order) its Hessian is a band matrix of
@@ -42,7 +43,6 @@ BAND_MAX_BATCH = 4
 # Band systems of N = 432, u = 44 took 0.33 ms in one tile against LAPACK's 0.59 ms
 # for three, 0.35 against 0.41 for two and 0.37 against 0.19 for one (`solve_bands_in_tiles`)
 TILE_MIN_BATCH = 3
-TILE = 4
 
 
 def prefer_band(
@@ -99,12 +99,13 @@ def solve_bands_in_tiles(
     bands: Tensor, rhs: Tensor, layout: LevelLayout, kernels: ctypes.CDLL, *, single: bool = False
 ) -> tuple[Tensor, Tensor]:
     """`solve_bands` by the C kernel of `energysim.linalg.native` (CPU), four float64 systems to a
-    tile (`band_tiles.c`), each SIMD operation serving four of them. The kernel reads the bands
-    where they lie (`_band_strides`); batch-last storage, the compiled band Hessian's transposed
-    view, it gathers a tile's systems at a time. `bands` is left unchanged.
+    tile (`band_tiles.c`), each SIMD operation serving four of them; eight where the CPU has
+    AVX-512 and the batch fills more than one tile of four (`native.tile_kernel`). The kernel reads
+    the bands where they lie (`_band_strides`); batch-last storage, the compiled band Hessian's
+    transposed view, it gathers a tile's systems at a time. `bands` is left unchanged.
 
-    `single` (implied by float32 `bands`): factorise and solve in float32, eight systems to a tile
-    (float64 bands are rounded to a float32 copy first); the solutions are returned in `rhs`'s
+    `single` (implied by float32 `bands`): factorise and solve in float32, twice the systems to a
+    tile (float64 bands are rounded to a float32 copy first); the solutions are returned in `rhs`'s
     precision. Which systems are positive definite stays float64's verdict: those float32 finds not
     positive definite are solved again in float64 (rounding can tip a nearly singular matrix either
     way)."""
@@ -112,7 +113,7 @@ def solve_bands_in_tiles(
     if single and bands.dtype != torch.float32:
         bands = bands.to(torch.float32)  # strides kept: batch-last stays batch-last
     batch, size, width = bands.shape
-    lanes = 2 * TILE if single else TILE
+    kernel, lanes = native.tile_kernel(kernels, single=single, batch=batch)
     real = bands.dtype
     tiles = -(-batch // lanes)
     storage, entry_stride, batch_stride = _band_strides(bands)
@@ -122,7 +123,6 @@ def solve_bands_in_tiles(
     values = padded.reshape(tiles, lanes, size).transpose(1, 2).contiguous()
     positive_definite = torch.ones(tiles * lanes, dtype=torch.uint8)
     work = torch.empty(size * width * lanes, dtype=real)
-    kernel = kernels.band_solve_tiles_single if single else kernels.band_solve_tiles
     kernel(
         storage.data_ptr(), entry_stride, batch_stride, batch, size, width,
         values.data_ptr(), positive_definite.data_ptr(), work.data_ptr(),

@@ -22,15 +22,25 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
 import torch
 
 SOURCE = "band_tiles.c"
-# the builds of `SOURCE` in one library: its preprocessor definitions per precision (double: the
-# file's default; single: `band_solve_tiles_single`, eight systems a vector)
-PRECISIONS: dict[str, tuple[str, ...]] = {"double": (), "single": ("-DREAL=float", "-DSUFFIX=_single")}
+# the builds of `SOURCE` in one library, by the kernel each exports: its preprocessor definitions
+# (double precision is the file's default; single: eight systems a 32-byte vector)
+BUILDS: dict[str, tuple[str, ...]] = {
+    "band_solve_tiles": (),
+    "band_solve_tiles_single": ("-DREAL=float", "-DSUFFIX=_single"),
+}
+# where the CPU has AVX-512, each again with 64-byte vectors (twice the systems a tile) and two
+# columns factorised at once, exported with the suffix `_wide`
+WIDE: tuple[str, ...] = ("-mavx512f", "-DVECTOR_BYTES=64", "-DCOLUMN_PAIRS")
+# bytes of a SIMD vector in the builds of `BUILDS` and in the wide ones
+VECTOR_BYTES = 32
+WIDE_VECTOR_BYTES = 64
 # a build that takes longer is abandoned and the fallback path taken (it takes ~0.3 s)
 BUILD_TIMEOUT_S = 120.0
 
@@ -71,6 +81,37 @@ def architecture_flags() -> list[str]:
     return ["-mavx2", "-mfma"] if capability in ("AVX2", "AVX512") else []
 
 
+def has_wide_vectors() -> bool:
+    """Whether the kernels are built for 64-byte vectors too: torch found AVX-512 on this CPU."""
+    return torch.backends.cpu.get_cpu_capability() == "AVX512"
+
+
+def builds() -> dict[str, tuple[str, ...]]:
+    """The kernels built for this CPU and the definitions and flags each is built with: `BUILDS`,
+    and their wide forms where the CPU has AVX-512."""
+    table = dict(BUILDS)
+    if has_wide_vectors():
+        for name, defines in BUILDS.items():
+            kept = tuple(define for define in defines if not define.startswith("-DSUFFIX="))
+            suffix = name.removeprefix("band_solve_tiles")
+            table[f"{name}_wide"] = (*kept, *WIDE, f"-DSUFFIX={suffix}_wide")
+    return table
+
+
+def tile_kernel(kernels: ctypes.CDLL, *, single: bool, batch: int) -> tuple[Callable, int]:
+    """The band kernel (`band_tiles.c`) that solves `batch` systems, and the systems it takes a tile:
+    the wide build where the library has it and the batch fills more than one 32-byte tile (for
+    fewer, its wider tile would factorise more identity padding than it saves), else the 32-byte one.
+    `single`: the float32 build."""
+    size = 4 if single else 8
+    name = "band_solve_tiles_single" if single else "band_solve_tiles"
+    if batch > VECTOR_BYTES // size:
+        wide = getattr(kernels, f"{name}_wide", None)
+        if wide is not None:
+            return wide, WIDE_VECTOR_BYTES // size
+    return getattr(kernels, name), VECTOR_BYTES // size
+
+
 @functools.cache
 def _load() -> ctypes.CDLL | None:
     try:
@@ -91,7 +132,8 @@ def _build() -> Path:
         raise RuntimeError("no C compiler (cc, gcc or clang) on the PATH; set CC to name one")
     source = resources.files("energysim.linalg").joinpath(SOURCE).read_text(encoding="utf-8")
     flags = ["-O3", "-std=c99", "-fPIC", *architecture_flags()]
-    defines = [define for variant in PRECISIONS.values() for define in variant]
+    kernels = builds()
+    defines = [define for variant in kernels.values() for define in variant]
     identity = "\0".join([source, cc, *flags, *defines, platform.machine()])
     key = hashlib.sha256(identity.encode()).hexdigest()[:16]
     target = cache_dir() / f"band_tiles-{key}.so"
@@ -102,11 +144,11 @@ def _build() -> Path:
         source_path = Path(scratch) / SOURCE
         source_path.write_text(source, encoding="utf-8")
         built = Path(scratch) / target.name
-        # the source once per precision (`PRECISIONS`), linked into one library
-        objects = [str(Path(scratch) / f"{name}.o") for name in PRECISIONS]
+        # the source once per kernel (`builds`), linked into one library
+        objects = [str(Path(scratch) / f"{name}.o") for name in kernels]
         commands = [
             [cc, *flags, *variant, "-c", str(source_path), "-o", obj]
-            for variant, obj in zip(PRECISIONS.values(), objects, strict=True)
+            for variant, obj in zip(kernels.values(), objects, strict=True)
         ]
         commands.append([cc, *flags, "-shared", *objects, "-o", str(built), "-lm"])
         for command in commands:
@@ -119,7 +161,7 @@ def _build() -> Path:
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     pointer, size = ctypes.c_void_p, ctypes.c_long
-    for name in ("band_solve_tiles", "band_solve_tiles_single"):
+    for name in builds():
         getattr(lib, name).argtypes = [pointer, size, size, size, size, size, pointer, pointer, pointer]
         getattr(lib, name).restype = None
     return lib
