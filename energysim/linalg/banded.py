@@ -88,8 +88,8 @@ def solve_bands(
     be overwritten by the factors.
 
     Batches take the C kernel that factorises four float64 systems at once (`solve_bands_in_tiles`)
-    where it is built, eight at once in float32 for float32 `bands` or with `single`; the rest,
-    LAPACK one matrix at a time in the bands' own precision."""
+    where it is built, eight at once in float32 for float32 `bands` or with `single` (twice as many
+    with AVX-512); the rest, LAPACK one matrix at a time in the bands' own precision."""
     if solve_keeps_bands(bands):
         return solve_bands_in_tiles(bands, rhs, layout, native.library(), single=single)
     return substitute_bands(factorise_bands(bands), rhs, layout)
