@@ -13,8 +13,8 @@
  * L[j, i] serves SB multiply-adds, where the right-looking update loads and stores every entry it
  * touches. With COLUMN_PAIRS (the 64-byte build, whose 32 vector registers hold both columns' sums)
  * columns j and j + 1 are accumulated together, so each load of a row's L[R, i] serves two
- * multiply-adds: for the quadruped's band (u = 101) that halves the traffic from the cache that
- * bounds the factorisation. The operations on each entry, and their order, are those of the
+ * multiply-adds, about half the loads per multiply-add: a wide band's factorisation waits on those
+ * loads more than on its arithmetic. The operations on each entry, and their order, are those of the
  * single-column form, so both give the same factors to the last bit. LAPACK's ?pbtrf factorises one
  * matrix per call and cannot use the batch.
  *
