@@ -11,8 +11,8 @@
  * The factorisation is left-looking (column j is A[:, j] less the dot products of the rows of the
  * columns before it), with SB rows of column j accumulated in registers at a time: each load of
  * L[j, i] serves SB multiply-adds, where the right-looking update loads and stores every entry it
- * touches. With COLUMN_PAIRS (the 64-byte build, whose 32 vector registers hold both columns' sums)
- * columns j and j + 1 are accumulated together, so each load of a row's L[R, i] serves two
+ * touches. With COLUMN_PAIRS (built where the CPU has AVX-512, whose 32 vector registers hold both
+ * columns' sums) columns j and j + 1 are accumulated together, so each load of a row's L[R, i] serves two
  * multiply-adds, about half the loads per multiply-add: a wide band's factorisation waits on those
  * loads more than on its arithmetic. The operations on each entry, and their order, are those of the
  * single-column form, so both give the same factors to the last bit. LAPACK's ?pbtrf factorises one
@@ -25,7 +25,8 @@
  * The file is built several times into one library (`energysim.linalg.native`): as it stands, in
  * double precision, four systems a 32-byte vector (`band_solve_tiles`); with -DREAL=float
  * -DSUFFIX=_single, eight systems a vector in single precision (`band_solve_tiles_single`); and
- * where the CPU has AVX-512, each again with -DVECTOR_BYTES=64 -DCOLUMN_PAIRS (suffix `_wide`).
+ * where the CPU has AVX-512, all with -DCOLUMN_PAIRS and each again with -DVECTOR_BYTES=64 (suffix
+ * `_wide`).
  * Each build reads bands of its own precision.
  */
 #include <math.h>

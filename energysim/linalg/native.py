@@ -35,9 +35,12 @@ BUILDS: dict[str, tuple[str, ...]] = {
     "band_solve_tiles": (),
     "band_solve_tiles_single": ("-DREAL=float", "-DSUFFIX=_single"),
 }
-# where the CPU has AVX-512, each again with 64-byte vectors (twice the systems a tile) and two
-# columns factorised at once, exported with the suffix `_wide`
-WIDE: tuple[str, ...] = ("-mavx512f", "-DVECTOR_BYTES=64", "-DCOLUMN_PAIRS")
+# where the CPU has AVX-512, every build factorises two columns at once: its 32 vector registers
+# (AVX-512VL lends them to 32-byte vectors too) hold both columns' sums
+PAIRED: tuple[str, ...] = ("-mavx512f", "-mavx512vl", "-DCOLUMN_PAIRS")
+# and each is built again with 64-byte vectors (twice the systems a tile), exported with the
+# suffix `_wide`
+WIDE: tuple[str, ...] = ("-DVECTOR_BYTES=64",)
 # bytes of a SIMD vector in the builds of `BUILDS` and in the wide ones
 VECTOR_BYTES = 32
 WIDE_VECTOR_BYTES = 64
@@ -88,13 +91,15 @@ def has_wide_vectors() -> bool:
 
 def builds() -> dict[str, tuple[str, ...]]:
     """The kernels built for this CPU and the definitions and flags each is built with: `BUILDS`,
-    and their wide forms where the CPU has AVX-512."""
-    table = dict(BUILDS)
-    if has_wide_vectors():
-        for name, defines in BUILDS.items():
-            kept = tuple(define for define in defines if not define.startswith("-DSUFFIX="))
-            suffix = name.removeprefix("band_solve_tiles")
-            table[f"{name}_wide"] = (*kept, *WIDE, f"-DSUFFIX={suffix}_wide")
+    and where the CPU has AVX-512, those with column pairs (`PAIRED`) and their wide forms."""
+    if not has_wide_vectors():
+        return dict(BUILDS)
+    table = {}
+    for name, defines in BUILDS.items():
+        table[name] = (*defines, *PAIRED)
+        kept = tuple(define for define in defines if not define.startswith("-DSUFFIX="))
+        suffix = name.removeprefix("band_solve_tiles")
+        table[f"{name}_wide"] = (*kept, *PAIRED, *WIDE, f"-DSUFFIX={suffix}_wide")
     return table
 
 
