@@ -30,6 +30,7 @@
  * Each build reads bands of its own precision.
  */
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 #ifndef REAL
@@ -223,17 +224,21 @@ static void substitute_tile(const REAL *restrict tile, REAL *restrict v, long n,
   }
 }
 
-/* Solve A_b x_b = b_b for the `batch` matrices in `a` and the right-hand sides `x` [tiles, n, LANES]
- * (tiles = ceil(batch / LANES)), which are overwritten by the solutions; ok[b] is set to 0 where A_b
- * is not positive definite. Entry r of column i of matrix b is a[(i * w + r) * entry_stride + b *
- * batch_stride]: batch-last storage (batch_stride 1) is gathered LANES entries at a time, any other
- * lane by lane. `a` is only read; `work` holds n * w * LANES numbers. A tile gathered just before
- * its factorisation stays in cache for the factorisation and both substitutions: its factors never
- * travel through memory. */
+/* Solve A_b x_b = b_b for the `batch` matrices in `a`. Entry r of column i of matrix b is
+ * a[(i * w + r) * entry_stride + b * batch_stride]: batch-last storage (batch_stride 1) is gathered
+ * LANES entries at a time, any other lane by lane. b_b is row b of `rhs` `[batch, n]` in the matrices'
+ * ordering `order` (entry i of the band systems is DOF order[i] of a row); x_b is written in the
+ * same place of `solution` `[batch, n]`, both in double precision whatever REAL is, and zero where
+ * A_b is not positive definite (ok[b] set to 0, as LAPACK's path leaves such a row). `a` is only
+ * read; `work` holds n * (w + 1) * LANES numbers. A tile gathered just before its factorisation
+ * stays in cache for the factorisation and both substitutions: its factors never travel through
+ * memory. */
 void JOIN(band_solve_tiles, SUFFIX)(const REAL *restrict a, long entry_stride, long batch_stride, long batch,
-                                    long n, long w, REAL *restrict x, unsigned char *restrict ok,
+                                    long n, long w, const double *restrict rhs, const int64_t *restrict order,
+                                    double *restrict solution, unsigned char *restrict ok,
                                     REAL *restrict work) {
   const long tiles = (batch + LANES - 1) / LANES, entries = n * w;
+  REAL *values = work + entries * LANES;
   for (long t = 0; t < tiles; ++t) {
     const long first = t * LANES, count = batch - first < LANES ? batch - first : LANES;
     if (count == LANES && batch_stride == 1) {
@@ -249,7 +254,21 @@ void JOIN(band_solve_tiles, SUFFIX)(const REAL *restrict a, long entry_stride, l
         }
       }
     }
+    for (long lane = 0; lane < LANES; ++lane) {
+      if (lane < count) {
+        const double *row = rhs + (first + lane) * n;
+        for (long i = 0; i < n; ++i) values[i * LANES + lane] = (REAL)row[order[i]];
+        ok[first + lane] = 1;
+      } else {
+        for (long i = 0; i < n; ++i) values[i * LANES + lane] = 0;
+      }
+    }
     factor_tile(work, n, w, ok + first);
-    substitute_tile(work, x + t * n * LANES, n, w);
+    substitute_tile(work, values, n, w);
+    for (long lane = 0; lane < count; ++lane) {
+      double *row = solution + (first + lane) * n;
+      const int solved = ok[first + lane];
+      for (long i = 0; i < n; ++i) row[order[i]] = solved ? (double)values[i * LANES + lane] : 0.0;
+    }
   }
 }

@@ -117,27 +117,29 @@ def solve_bands_in_tiles(
     real = bands.dtype
     tiles = -(-batch // lanes)
     storage, entry_stride, batch_stride = _band_strides(bands)
-    # the right-hand sides as the tiles' lanes `[tiles, N, lanes]`, zero past the batch
-    padded = rhs.new_zeros(tiles * lanes, size, dtype=real)
-    padded[:batch] = rhs[:, layout.band_order]
-    values = padded.reshape(tiles, lanes, size).transpose(1, 2).contiguous()
-    positive_definite = torch.ones(tiles * lanes, dtype=torch.uint8)
-    work = torch.empty(size * width * lanes, dtype=real)
+    # the kernel reads the right-hand sides and writes the solutions as float64 rows in the DOFs'
+    # own order, permuting them into the band order and back itself
+    given_rhs = rhs.to(torch.float64).contiguous()
+    solution = torch.empty_like(given_rhs)
+    positive_definite = torch.empty(tiles * lanes, dtype=torch.uint8)
+    work = torch.empty(size * (width + 1) * lanes, dtype=real)
     kernel(
-        storage.data_ptr(), entry_stride, batch_stride, batch, size, width,
-        values.data_ptr(), positive_definite.data_ptr(), work.data_ptr(),
+        storage.data_ptr(), entry_stride, batch_stride, batch, size, width, given_rhs.data_ptr(),
+        _band_order(layout).data_ptr(), solution.data_ptr(), positive_definite.data_ptr(), work.data_ptr(),
     )
     solved = positive_definite[:batch].bool()
-    in_order = values.permute(0, 2, 1).reshape(tiles * lanes, size)[:batch].to(rhs.dtype)
-    solution = torch.zeros_like(rhs)
-    # a lane that failed holds whatever its unit pivots made of it: zero, as LAPACK's path leaves it
-    solution[:, layout.band_order] = torch.where(solved[:, None], in_order, 0.0)
+    solution = solution.to(rhs.dtype)
     if single and not bool(solved.all()):
         rows = torch.nonzero(~solved).reshape(-1)
         again, again_solved = solve_bands_in_tiles(given[rows].double(), rhs[rows], layout, kernels)
         solution = solution.index_copy(0, rows, again)
         solved = solved.index_copy(0, rows, again_solved)
     return solution, solved
+
+
+def _band_order(layout: LevelLayout) -> Tensor:
+    # the layout's band order as the kernel reads it: int64, contiguous, on the CPU
+    return layout.band_order.to(torch.int64).contiguous()
 
 
 def _band_strides(bands: Tensor) -> tuple[Tensor, int, int]:

@@ -167,6 +167,7 @@ def _build() -> Path:
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     pointer, size = ctypes.c_void_p, ctypes.c_long
     for name in builds():
-        getattr(lib, name).argtypes = [pointer, size, size, size, size, size, pointer, pointer, pointer]
+        # bands, entry and batch strides, batch, N, w; rhs, order, solution, ok, work
+        getattr(lib, name).argtypes = [pointer, size, size, size, size, size, *[pointer] * 5]
         getattr(lib, name).restype = None
     return lib
