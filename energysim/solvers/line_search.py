@@ -222,34 +222,30 @@ def line_step(
     rounding = _rounding(x, energy)
     measured = False
 
-    def strict(trial: Tensor, step: Tensor) -> Tensor:
-        # Armijo's test without the allowance for rounding
-        no_allowance = torch.zeros_like(rounding)
-        return _sufficient_decrease(energy, trial, step, slope, no_allowance, sufficient_decrease)
-
-    def within_allowance(trial: Tensor, step: Tensor) -> Tensor:
-        # Armijo's test passed only thanks to the allowance: E did not fall as it must
-        allowed = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
-        return allowed & ~strict(trial, step)
-
-    def armijo(trial: Tensor, step: Tensor, trial_slope: Tensor) -> Tensor:
-        # where the predicted decrease is above the rounding, the energy judges the step, and a
-        # trial within the allowance passes only where E still falls at it: the rounding must not
-        # let through a step past the minimum along the direction (twice the way to it leaves E
-        # where it was, and a solve that takes such steps makes no progress)
+    def armijo(trial: Tensor, step: Tensor, trial_slope: Tensor) -> tuple[Tensor, Tensor]:
+        # Armijo's test, and where it passes only thanks to the allowance for rounding (E did not
+        # fall as it must). Where the predicted decrease is above the rounding, the energy judges
+        # the step, and a trial within the allowance passes only where E still falls at it: the
+        # rounding must not let through a step past the minimum along the direction (twice the way
+        # to it leaves E where it was, and a solve that takes such steps makes no progress).
+        # (`_sufficient_decrease` without and with the allowance, sharing their operations.)
+        bound = energy + sufficient_decrease * step * slope
+        finite = torch.isfinite(trial)
+        strict = finite & (trial <= bound)
+        within = finite & (trial <= bound + rounding) & ~strict
         by_energy = -slope * step > rounding
-        return strict(trial, step) | (within_allowance(trial, step) & (~by_energy | (trial_slope <= 0)))
+        return strict | (within & (~by_energy | (trial_slope <= 0))), within
 
     unjudged = -slope * initial <= rounding
     slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
-    decrease = armijo(trial_energy, initial, trial_slope)
+    decrease, within = armijo(trial_energy, initial, trial_slope)
     doubtful = ~decrease & _noise_may_matter(energy, slope, initial, slope_decrease)
     if bool(doubtful.any()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = noise_floor(doubtful), True
         unjudged = -slope * initial <= rounding
-        decrease = armijo(trial_energy, initial, trial_slope)
-    beyond = ~unjudged & ~decrease & within_allowance(trial_energy, initial)
+        decrease, within = armijo(trial_energy, initial, trial_slope)
+    beyond = ~unjudged & ~decrease & within
     overshot = ((unjudged & ~slope_decrease) | beyond) & (slope < 0) & (trial_slope > slope)
     if bool(overshot.any()):
         # the minimiser of the quadratic through φ'(0) and φ'(t): below t/2 where the trapezoid
@@ -261,11 +257,11 @@ def line_step(
         trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
         trial_residual = objective.residual(trial_gradient)
         slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
-        decrease = armijo(trial_energy, initial, trial_slope)
+        decrease, _ = armijo(trial_energy, initial, trial_slope)
         if not measured and not bool(decrease.all()):
             rounding = noise_floor(~decrease)
             unjudged = -slope * initial <= rounding
-            decrease = armijo(trial_energy, initial, trial_slope)
+            decrease, _ = armijo(trial_energy, initial, trial_slope)
     # the energy cannot tell these from no change: their derivatives can
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
