@@ -137,8 +137,11 @@ class BandCholesky:
 def _band_result(
     solution: Tensor, positive_definite: Tensor, rhs: Tensor, wanted: Tensor
 ) -> tuple[Tensor, Tensor]:
-    # a band solve's `[B, N]` solutions, shaped as `rhs`, zero where not wanted or not solved
+    # a band solve's `[B, N]` solutions, shaped as `rhs`, zero where not wanted or not solved (no
+    # copy where every row is both)
     solved = wanted & positive_definite
+    if bool(solved.all()):
+        return solution.reshape(rhs.shape), solved
     return solution.reshape(rhs.shape) * solved[:, None, None], solved
 
 

@@ -51,6 +51,15 @@ __all__ = ["COMPILED_BAND_MAX_DOFS", "EAGER_DIRECT_MAX_DOFS", "INDEFINITE_SHIFTS
 KEPT_FACTORISATIONS = 4
 
 
+def _in_layout_of(like: Tensor, value: Tensor) -> Tensor:
+    """`value` in the memory layout of `like` (a copy only where the two differ): the compiled calls
+    guard on their inputs' strides, and a gradient that came back in another layout (batch-last from
+    one evaluation, batch-major from another) would compile the next calls anew."""
+    if value.stride() == like.stride():
+        return value
+    return torch.empty_like(like).copy_(value)
+
+
 @dataclass(frozen=True)
 class NewtonCG(Solver):
     """Inexact Newton with truncated preconditioned CG on Hessian-vector products.
@@ -225,7 +234,8 @@ class NewtonCG(Solver):
             uphill = active & (slope >= 0)
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
-            direction = direction * active[:, None, None]
+            if not bool(active.all()):  # (most iterations: every row still iterates, no copy needed)
+                direction = direction * active[:, None, None]
             search = line_step(objective, x, energy, gradient, direction, noise=noise, restrict=restrict)
             noise = search.noise
             if self.reuse_factorization is not None:
@@ -237,13 +247,18 @@ class NewtonCG(Solver):
             # a step too small for the energy to judge stands only if the residual fell; if not,
             # this is as far as the precision goes: keep the better point and stop that entry
             worse = active & search.unjudged & (search.residual >= residual)
-            stalled = stalled | worse
-            keep = worse[:, None, None]
-            previous, x = x, torch.where(keep, x, search.x)
+            previous = x
+            if bool(worse.any()):  # (rare: most iterations take every row's search as it is)
+                stalled = stalled | worse
+                keep = worse[:, None, None]
+                x = torch.where(keep, x, search.x)
+                gradient = torch.where(keep, gradient, search.gradient)
+                new_energy = torch.where(worse, energy, search.energy)
+                residual = torch.where(worse, residual, search.residual)
+            else:
+                x, new_energy, residual = search.x, search.energy, search.residual
+                gradient = _in_layout_of(gradient, search.gradient)
             objective.update_curvature_hints(previous, x)
-            gradient = torch.where(keep, gradient, search.gradient)
-            new_energy = torch.where(worse, energy, search.energy)
-            residual = torch.where(worse, residual, search.residual)
             stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
             energy = new_energy
             stalled = stalled | stuck
