@@ -263,8 +263,8 @@ def test_band_systems_of_any_order_and_width_solve_as_dense_algebra(
 def test_the_wide_tiles_give_the_narrow_tiles_solutions_to_the_last_bit(
     single: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # the same operations on every entry in the same order (`band_tiles.c`): tile width and column
-    # pairs change the speed, not one bit of a direction
+    # the same operations on every entry in the same order (`band_tiles.c`): the tile's width
+    # changes the speed, not one bit of a direction
     kernels = native.library()
     dense, bands, layout = _worm_systems([1e-4 * entry for entry in range(17)])
     rhs = torch.randn(17, dense.shape[-1], generator=torch.Generator().manual_seed(14), dtype=dense.dtype)

@@ -30,11 +30,9 @@ import torch
 
 SOURCE = "band_tiles.c"
 # the builds of `SOURCE` in one library, by the kernel each exports: its preprocessor definitions
-# (double precision is the file's default; single: eight systems a 32-byte vector)
-BUILDS: dict[str, tuple[str, ...]] = {
-    "band_solve_tiles": (),
-    "band_solve_tiles_single": ("-DREAL=float", "-DSUFFIX=_single"),
-}
+# (double precision is the file's default; single: eight systems a 32-byte vector), the name's
+# suffix (`-DSUFFIX`) added by `builds`
+BUILDS: dict[str, tuple[str, ...]] = {"band_solve_tiles": (), "band_solve_tiles_single": ("-DREAL=float",)}
 # where the CPU has AVX-512, every build factorises two columns at once: its 32 vector registers
 # (AVX-512VL lends them to 32-byte vectors too) hold both columns' sums
 PAIRED: tuple[str, ...] = ("-mavx512f", "-mavx512vl", "-DCOLUMN_PAIRS")
@@ -92,14 +90,14 @@ def has_wide_vectors() -> bool:
 def builds() -> dict[str, tuple[str, ...]]:
     """The kernels built for this CPU and the definitions and flags each is built with: `BUILDS`,
     and where the CPU has AVX-512, those with column pairs (`PAIRED`) and their wide forms."""
-    if not has_wide_vectors():
-        return dict(BUILDS)
     table = {}
     for name, defines in BUILDS.items():
-        table[name] = (*defines, *PAIRED)
-        kept = tuple(define for define in defines if not define.startswith("-DSUFFIX="))
         suffix = name.removeprefix("band_solve_tiles")
-        table[f"{name}_wide"] = (*kept, *PAIRED, *WIDE, f"-DSUFFIX={suffix}_wide")
+        if not has_wide_vectors():
+            table[name] = (*defines, f"-DSUFFIX={suffix}")
+            continue
+        table[name] = (*defines, *PAIRED, f"-DSUFFIX={suffix}")
+        table[f"{name}_wide"] = (*defines, *PAIRED, *WIDE, f"-DSUFFIX={suffix}_wide")
     return table
 
 

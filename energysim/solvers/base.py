@@ -1,4 +1,5 @@
-"""What every optimizer shares: the result record, the solver contract and failure reporting.
+"""What every optimizer shares: the result record, the solver contract, failure reporting, and
+keeping an iterate's tensors in the layout the compiled evaluations were traced with.
 
 The line search is `energysim.solvers.line_search`, the stop for lack of progress
 `energysim.solvers.stagnation`."""
@@ -13,6 +14,15 @@ from torch import Tensor
 
 from energysim.objective.objective import Objective
 from energysim.solvers.arguments import require_bool, require_integer, require_real
+
+
+def in_layout_of(like: Tensor, value: Tensor) -> Tensor:
+    """`value` in the memory layout of `like` (a copy only where the two differ): the compiled calls
+    guard on their inputs' strides, and an iterate's gradient that came back in another layout
+    (batch-last from one evaluation, batch-major from another) would compile the next calls anew."""
+    if value.stride() == like.stride():
+        return value
+    return torch.empty_like(like).copy_(value)
 
 
 class ConvergenceWarning(RuntimeWarning):

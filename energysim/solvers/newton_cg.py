@@ -40,7 +40,7 @@ from energysim.linalg.linear_solve import (
 from energysim.objective.derivatives import HessianOperator
 from energysim.objective.objective import Objective
 from energysim.solvers.arguments import require_bool, require_choice, require_integer, require_real
-from energysim.solvers.base import Solver, SolverResult
+from energysim.solvers.base import Solver, SolverResult, in_layout_of
 from energysim.solvers.line_search import line_step
 from energysim.solvers.stagnation import Stagnation
 
@@ -49,15 +49,6 @@ __all__ = ["COMPILED_BAND_MAX_DOFS", "EAGER_DIRECT_MAX_DOFS", "INDEFINITE_SHIFTS
 # Kept factorisations (`NewtonCG.reuse_factorization`): one per kind of solve a scene alternates
 # between (TR-BDF2's two stages have different M/h², implicit Euler a third).
 KEPT_FACTORISATIONS = 4
-
-
-def _in_layout_of(like: Tensor, value: Tensor) -> Tensor:
-    """`value` in the memory layout of `like` (a copy only where the two differ): the compiled calls
-    guard on their inputs' strides, and a gradient that came back in another layout (batch-last from
-    one evaluation, batch-major from another) would compile the next calls anew."""
-    if value.stride() == like.stride():
-        return value
-    return torch.empty_like(like).copy_(value)
 
 
 @dataclass(frozen=True)
@@ -86,16 +77,14 @@ class NewtonCG(Solver):
             (elsewhere it factorises dense). "levels": block-tridiagonal Cholesky over breadth-first
             vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
             S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
-            picks by those estimates (`prefer_levels`, measured on the worm, N = 432, L = 18, S = 27;
-            then `prefer_band`): banded for one worm on the CPU (dense on CUDA), levels for batches
-            of them (≈ 6× faster per Newton direction at B = 16); with `compile=True` banded on the
-            CPU for any batch (its Hessian is then assembled in band storage by a compiled
-            function); on a GPU, compiled, the level blocks by a compiled function too
-            (`Objective.level_hessian`).
+            picks by those estimates (`prefer_levels`, then `prefer_band`): banded for one worm on
+            the CPU (dense on CUDA), levels for batches of them; with `compile=True` banded on the
+            CPU for any batch (its Hessian assembled in band storage by a compiled function); on a
+            GPU, compiled, the level blocks by a compiled function too (`Objective.level_hessian`).
         compact_below: once at most this fraction of a batch's entries still iterates, go on with those alone
             (`Objective.subset`: the step builds their objective from their slice of the state) rather than
-            compute on every entry until the slowest (on 64 randomly driven worms, about twice the mean
-            iterations) has converged; each later halving compacts again. 0 turns it off.
+            compute on every entry until the slowest has converged; each later halving compacts again.
+            0 turns it off.
         project_hessian: project every element block to positive semidefinite (projected Newton,
             as IPC does) instead of truncating CG on negative curvature. Off by default: on the
             hard cases in the tests (inverted, scrambled and flattened bodies, 20 m/s impacts) the
@@ -103,12 +92,9 @@ class NewtonCG(Solver):
         indefinite: what a direct solve does where H is not positive definite. "cg" (default):
             hand the entry to truncated CG (Steihaug). "shift": factorise H + τ·|diag H| for τ in
             `INDEFINITE_SHIFTS` in turn, and hand the entry to CG only if none factorises. Both
-            give a descent direction. The shift keeps the direct path, which is the compiled one
-            with `compile=True`: the worm environment with random actions took the same Newton
-            iterations per step (20.3 against 20.6) and a third of the time compiled. Not the default:
-            a fixed shift converges only linearly where H stays indefinite up to the solution
-            (a muscle alone, extended, has minimisers in a whole family of shapes), where
-            Steihaug's CG converged in 22 iterations and the shift had not in 100.
+            give a descent direction. The shift keeps the direct path, the compiled one with
+            `compile=True`. Not the default: a fixed shift converges only linearly where H stays
+            indefinite up to the solution (docs/solvers.md has both measured).
         reuse_factorization: None (default): factorise H at every Newton iteration. A fraction ρ in
             (0, 1): on the compiled band path (`compile=True`, CPU), keep each band Cholesky factor
             and solve with it in later iterations and later steps (a chord method) as long as every
@@ -196,6 +182,7 @@ class NewtonCG(Solver):
         # alone on a CPU only: a GPU evaluates the whole batch at about the cost of a few rows, and each
         # new number of refusing rows would compile the evaluations again (docs/solvers.md)
         restrict = rows_alone if root.subset is not None and x.device.type == "cpu" else None
+        skips_copies = x.device.type == "cpu"  # checking costs less than a whole-batch copy (no GPU sync)
         for _ in range(self.max_iter):
             active = (residual >= self.tol) & ~stalled
             if not active.any():
@@ -234,7 +221,7 @@ class NewtonCG(Solver):
             uphill = active & (slope >= 0)
             if uphill.any():
                 direction = torch.where(uphill[:, None, None], precondition(-gradient), direction)
-            if not bool(active.all()):  # (most iterations: every row still iterates, no copy needed)
+            if not (skips_copies and bool(active.all())):
                 direction = direction * active[:, None, None]
             search = line_step(objective, x, energy, gradient, direction, noise=noise, restrict=restrict)
             noise = search.noise
@@ -248,16 +235,16 @@ class NewtonCG(Solver):
             # this is as far as the precision goes: keep the better point and stop that entry
             worse = active & search.unjudged & (search.residual >= residual)
             previous = x
-            if bool(worse.any()):  # (rare: most iterations take every row's search as it is)
+            if skips_copies and not bool(worse.any()):  # most iterations take every row's search
+                x, new_energy, residual = search.x, search.energy, search.residual
+                gradient = in_layout_of(gradient, search.gradient)
+            else:
                 stalled = stalled | worse
                 keep = worse[:, None, None]
                 x = torch.where(keep, x, search.x)
                 gradient = torch.where(keep, gradient, search.gradient)
                 new_energy = torch.where(worse, energy, search.energy)
                 residual = torch.where(worse, residual, search.residual)
-            else:
-                x, new_energy, residual = search.x, search.energy, search.residual
-                gradient = _in_layout_of(gradient, search.gradient)
             objective.update_curvature_hints(previous, x)
             stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
             energy = new_energy
