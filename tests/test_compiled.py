@@ -15,9 +15,10 @@ from energysim.contact.obstacles import CCD_SAFETY
 from energysim.creatures import load_creature, resting_state
 from energysim.integrators.adjoint import step_terms
 from energysim.integrators.common import state_energies
+from energysim.integrators.implicit_stage import rows_of
 from energysim.linalg import native
 from energysim.linalg.linear_solve import level_layout_of
-from energysim.objective import compiled
+from energysim.objective import compiled, compiled_hessian
 from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.objective import Objective
 
@@ -218,6 +219,38 @@ def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(ba
     reference = _without_corner(expected[0].reshape(batch, -1)[:, layout.band_entries])
     tolerance = 1e-9 * float(expected[0].abs().max())
     assert torch.allclose(_without_corner(again), reference, rtol=0, atol=tolerance)
+
+
+@pytest.mark.parametrize(
+    ("batch", "rows"), [(BATCH_LAST_MIN_BATCH, [6, 1, 5]), (10, [0, 2, 3, 4, 5, 7, 8, 9])]
+)
+def test_a_subset_objective_slices_the_constant_hessian_part_from_its_parent(
+    batch: int, rows: list[int], monkeypatch
+):
+    # a solver's objective of the rows still iterating (`rows_of`) takes the inertia's and the lagged
+    # viscosity's part from its parent's storage, batch-last or not (3 rows: element-major; 8 of 10:
+    # batch-last), and its Hessian is the eager one of those rows at their positions
+    scene, objective, x = _worm_objective(batch=batch, viscosity=True)
+    layout = level_layout_of(objective.element_groups(), x)
+    objective.compiled = True
+    objective.band_hessian(x, layout)
+    entries = torch.tensor(rows)
+    part = rows_of(objective, scene.terms, entries)
+    assert part is not None
+    names = []
+    original = compiled.call
+    monkeypatch.setattr(
+        compiled_hessian, "call", lambda name, *arguments: names.append(name) or original(name, *arguments)
+    )
+    generator = torch.Generator().manual_seed(2)
+    y = x[entries] + 1e-4 * torch.randn(x[entries].shape, generator=generator, dtype=x.dtype)
+    part.compiled = True
+    bands = part.band_hessian(y, layout)
+    assert not any(name.startswith("constant_") for name in names) and names
+    part.compiled = False
+    dense = part.hessian(y).dense(y)
+    reference = _without_corner(dense.reshape(len(rows), -1)[:, layout.band_entries])
+    assert torch.allclose(_without_corner(bands), reference, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
 def test_the_terms_declared_constant_have_the_same_hessian_everywhere():

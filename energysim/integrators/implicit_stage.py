@@ -68,7 +68,9 @@ def rows_of(objective: Objective, scene_terms: Sequence[EnergyTerm], entries: Te
         terms.append(part)
     action = None if objective.action is None else objective.action[entries]
     anchor = None if objective.anchor is None else objective.anchor[entries]
-    return Objective(terms, objective.free, objective.residual_scale, action, anchor)
+    part = Objective(terms, objective.free, objective.residual_scale, action, anchor)
+    part.slice_constant_hessians_of(objective, entries)
+    return part
 
 
 GRAD_MODES = ("implicit", "unrolled")

@@ -8,7 +8,9 @@ lands differs.
 The terms whose Hessian does not depend on x (`EnergyTerm.has_constant_hessian`: the inertia, the
 lagged viscosity) are assembled once per objective, into a storage kept in the `constant` cache the
 objective passes; every later call starts from a copy of it and adds the other terms' entries. For 64
-worms that took a band Hessian from 14.8 to 12.4 ms a call (docs/benchmarks.md).
+worms that took a band Hessian from 14.8 to 12.4 ms a call (docs/benchmarks.md). An objective of
+some rows of another (a solver's subset of the entries still iterating) takes that part from its
+parent's storage, sliced (`PARENT`), rather than assembling it again.
 """
 
 from __future__ import annotations
@@ -45,6 +47,28 @@ __all__ = ["band_hessian", "dense_hessian", "level_hessian"]
 # storage → positions of an element group's entries in it
 Positions = Callable[[Tensor], Tensor]
 
+# Where a subset objective's cache names its parent's cache and its rows there
+# (`Objective.slice_constant_hessians_of`)
+PARENT = "parent"
+
+
+def _constant_start(constant: dict[object, object], key: object, batch_last: bool) -> Tensor | None:
+    # the constant terms' storage under `key` (batch-last `[length + 1, B]` or element-major
+    # `[B, length + 1]`), from this cache or sliced from the parent's; None where neither has it
+    stored = constant.get(key)
+    if stored is not None:
+        return stored[0]
+    link = constant.get(PARENT)
+    if link is None:
+        return None
+    parent, rows = link
+    stored = parent.get(key)
+    if stored is None:
+        return None
+    storage, parent_batch_last = stored
+    part = storage[:, rows] if parent_batch_last else storage[rows]
+    return (part.T if parent_batch_last != batch_last else part).contiguous()
+
 
 def _entries(
     name: str,
@@ -62,7 +86,8 @@ def _entries(
     `[B, length + 1]`, batch-last `[length + 1, B]`, the last slot taking what the storage drops): each
     group's element blocks at `positions(element_vertices)`, per-vertex diagonals at `diagonal`.
     With a `constant` cache, the constant terms' part is computed once under `key` (by
-    `constant_<name>`, as the whole storage) and the others' entries are added to a copy of it; None
+    `constant_<name>`, as the whole storage, or sliced from a parent's, `PARENT`; `key` names the
+    storage, not the batch size) and the others' entries are added to a copy of it; None
     where compiling failed. `single`: a float32 storage, see `band_hessian`."""
     copies = {} if constant is None else constant  # float32 copies of terms, kept with the objective's
 
@@ -88,12 +113,13 @@ def _entries(
     fixed = tuple(term for term in terms if term.has_constant_hessian and not term.is_linear)
     if constant is None or not fixed:
         return entries(name, tuple(terms), None)
-    start = constant.get(key)
+    batch_last = name.endswith("_batch_last")
+    start = _constant_start(constant, key, batch_last)
     if start is None:
         start = entries(f"constant_{name}", fixed, None)
         if start is None:
             return None
-        constant[key] = start
+    constant[key] = (start, batch_last)
     # (no varying terms: the call copies the start into the returned storage)
     varying = tuple(term for term in terms if not term.has_constant_hessian and not term.is_linear)
     return entries(name, varying, start)
@@ -124,7 +150,7 @@ def dense_hessian(
         return (dofs[:, :, None] * size + dofs[:, None, :]).reshape(-1)
 
     diagonal = torch.arange(size, device=x.device) * (size + 1)
-    key = ("dense", x.shape, x.dtype, x.device)
+    key = ("dense", x.shape[1:], x.dtype, x.device)
     flat = _entries("hessian_entries", terms, action, x, positions, diagonal, size * size, constant, key)
     if flat is None:
         return None
@@ -158,7 +184,7 @@ def band_hessian(
     batch, n, dim = x.shape
     diagonal = band_diagonal_positions(layout)
     length = band_length(layout)
-    key = ("band", id(layout), x.shape, x.dtype, x.device, single)
+    key = ("band", id(layout), x.shape[1:], x.dtype, x.device, single)
     if batch >= BATCH_LAST_MIN_BATCH:
         # batch-last: every element kernel one loop vectorised over the batch, half the entries
         positions = functools.partial(band_upper_positions, layout, dim=dim)
@@ -191,7 +217,7 @@ def level_hessian(
     batch, _, dim = x.shape
     positions = functools.partial(level_positions, layout, dim=dim)
     diagonal = level_diagonal_positions(layout)
-    key = ("levels", id(layout), x.shape, x.dtype, x.device)
+    key = ("levels", id(layout), x.shape[1:], x.dtype, x.device)
     length = level_length(layout)
     flat = _entries("hessian_entries", terms, action, x, positions, diagonal, length, constant, key)
     if flat is None:

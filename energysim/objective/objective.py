@@ -110,6 +110,12 @@ class Objective:
                 return result
         return evaluation.energy_and_gradient(self.terms, self.anchor, self.action, self.free, x)
 
+    def slice_constant_hessians_of(self, parent: Objective, entries: Tensor) -> None:
+        """Take the Hessian part of the terms with a constant Hessian from `parent`'s storage, rows
+        `entries` `[k]`, where it has one, instead of assembling it again (`compiled_hessian`). This
+        objective must be those rows of `parent`: its constant terms sliced from the parent's."""
+        self._constant_hessians[compiled_hessian.PARENT] = (parent._constant_hessians, entries)
+
     def update_curvature_hints(self, previous: Tensor, current: Tensor) -> None:
         """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
         adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). Eager: a few small
