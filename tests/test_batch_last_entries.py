@@ -130,21 +130,52 @@ def test_lagged_viscosity_energy_and_forces_entries_equal_autograd(dim):
     assert close(torch.stack([torch.stack(row) for row in forces]).permute(3, 2, 1, 0), expected_gradient)
 
 
-def test_terms_without_a_kernel_of_their_own_transpose_their_element_blocks():
-    # the default `batch_last_hessian_entries` (the ground's barrier here) reads `element_hessian`
+def _contact_terms(obstacle) -> tuple[list, torch.Tensor]:
+    # `obstacle` under a 2×1×1 box, its step's friction from a start a little above it, and positions
+    # `[3, n, 3]` that slide the contact vertices by 0.3, 1 and 3 times ε (ε = ε_v h) in the entries
     scene = es.Scene(es.TetMesh.box(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), dt=1 / 60)
-    ground = Ground(barrier_distance=0.02)
     scene.add(es.NeoHookean(1e5, 0.3))
-    scene.add(ground)
+    scene.add(obstacle)
     generator = torch.Generator().manual_seed(0)
     lift = 0.003 * torch.rand(3, scene.num_vertices, 3, generator=generator, dtype=torch.float64)
-    x = scene.rest_positions[None] + 0.005 + lift
-    corners = x[:, ground.element_vertices]
-    blocks = ground.element_hessian(corners, None)
-    assert float(blocks.abs().max()) > 0  # some vertices within the barrier's range
-    got = ground.batch_last_hessian_entries(corner_entries(corners), None)
-    assert torch.equal(torch.stack(got), as_upper(blocks, 1, 3))
-    energy, gradient = ground.element_energy_and_gradient(corners, None)
-    value, forces = ground.batch_last_energy_and_forces(corner_entries(corners), None)
-    assert torch.equal(value, energy.T)
-    assert torch.equal(torch.stack([torch.stack(row) for row in forces]).permute(3, 2, 1, 0), gradient)
+    start = scene.rest_positions[None] + 0.005 + lift
+    (friction,) = obstacle.lagged_terms(start, scene.dt)
+    slide = float(friction.smoothing) * torch.randn(start.shape, generator=generator, dtype=torch.float64)
+    slide[..., 1] = 0.0
+    scale = torch.tensor([0.3, 1.0, 3.0], dtype=torch.float64)[:, None, None]
+    return [obstacle, friction], start + scale * slide
+
+
+@pytest.mark.parametrize("shape", ["ground", "sphere"])
+def test_contact_entries_equal_autograd_of_the_barrier_and_friction(shape):
+    # the barrier's and the friction's batch-last kernels (the ground's distance per coordinate, the
+    # sphere's through the stacked default) against autograd's gradient and Hessian of their
+    # element energies; the friction's marked vertices against its majorized `element_hessian`
+    if shape == "ground":
+        obstacle = Ground(barrier_distance=0.02, friction=0.8)
+    else:
+        obstacle = es.SphereObstacle((0.1, -0.5, 0.05), 0.5, barrier_distance=0.02, friction=0.8)
+    terms, x = _contact_terms(obstacle)
+    friction = terms[1]
+    assert int((friction.weight > 0).sum()) > 3  # some vertices in contact
+    for term in terms:
+        corners = x[:, term.element_vertices].requires_grad_(True)
+        energy = term.element_energy(corners, None)
+        (gradient,) = torch.autograd.grad(energy.sum(), corners)
+        corners = corners.detach()
+        value, forces = term.batch_last_energy_and_forces(corner_entries(corners), None)
+        assert close(value, energy.detach().T)
+        assert close(torch.stack([torch.stack(row) for row in forces]).permute(3, 2, 1, 0), gradient)
+        exact = torch.stack(term.batch_last_hessian_entries(corner_entries(corners), None))
+        def energy_of(c: torch.Tensor, entry: int, term=term) -> torch.Tensor:
+            # entry `entry`'s element energies, with that entry's lagged data (x_n, P, μλ)
+            return term.element_energy(c.expand(len(x), -1, -1, -1), None)[entry]
+
+        expected = as_upper(autograd_blocks(energy_of, corners), 1, 3)
+        assert float(expected.abs().max()) > 0
+        assert close(exact, expected)
+    corners = x[:, friction.element_vertices]
+    friction.set_curvature_hint(friction.weight > 0)
+    marked = torch.stack(friction.batch_last_hessian_entries(corner_entries(corners), None))
+    assert close(marked, as_upper(friction.element_hessian(corners, None), 1, 3))
+    assert not close(marked, exact)  # the marks change the blocks of the vertices sliding beyond ε

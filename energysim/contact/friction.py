@@ -27,32 +27,62 @@ from energysim.energies.base import ElementEnergy
 from energysim.linalg.small_matmul import small_matmul
 
 
-def _norm_and_square(u: Tensor) -> tuple[Tensor, Tensor]:
-    """‖u‖ and ‖u‖² over the last axis; ‖u‖ has a zero (not NaN) derivative at u = 0.
+def slip_length(square: Tensor) -> Tensor:
+    """‖u‖ from ‖u‖², with a zero (not NaN) derivative at u = 0.
 
     f0 below ε is written as s/ε − y·s/(3ε²) with s = ‖u‖² smooth, so the kink of y = ‖u‖ at 0
     enters only multiplied by s, whose value and slope vanish there: derivatives stay exact.
     """
-    square = (u * u).sum(dim=-1)
     positive = square > 0
     safe = torch.where(positive, square, torch.ones_like(square))
-    return torch.where(positive, torch.sqrt(safe), torch.zeros_like(square)), square
+    return torch.where(positive, torch.sqrt(safe), torch.zeros_like(square))
+
+
+def _norm_and_square(u: Tensor) -> tuple[Tensor, Tensor]:
+    """‖u‖ and ‖u‖² over the last axis (`slip_length`)."""
+    square = (u * u).sum(dim=-1)
+    return slip_length(square), square
+
+
+# The mollifier's scalars, functions of y = ‖u‖ (and s = ‖u‖²) alone: the friction term's kernels in
+# either layout (`LaggedFriction`: slips `[..., d]`, or their components batch-last) are built on them
+
+
+def slip_value(length: Tensor, square: Tensor, smoothing: float | Tensor) -> Tensor:
+    """f0(y) in m: s/ε − y s/(3ε²) + ε/3 below ε, y beyond."""
+    ramp = square / smoothing - length * square / (3.0 * smoothing**2) + smoothing / 3.0
+    return torch.where(length < smoothing, ramp, length)
+
+
+def slip_gradient_scale(length: Tensor, smoothing: float | Tensor) -> Tensor:
+    """f1(y)/y in 1/m: (2 − y/ε)/ε below ε, 1/y beyond (∇ f0 = (f1/y) u)."""
+    below = length < smoothing
+    safe_length = torch.where(below, smoothing, length)
+    return torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
+
+
+def slip_curvature_along(
+    length: Tensor, smoothing: float | Tensor, majorized: Tensor | None = None
+) -> Tensor:
+    """f1′(y) − f1(y)/y in 1/m, the Hessian's extra curvature along û: −y/ε² below ε, −1/y beyond;
+    0 beyond ε where `majorized` is set (see `mollified_slip_hessian`)."""
+    below = length < smoothing
+    safe_length = torch.where(below, smoothing, length)
+    along = torch.where(below, -length / smoothing**2, -1.0 / safe_length)
+    if majorized is not None:
+        along = torch.where(majorized & ~below, torch.zeros_like(along), along)
+    return along
 
 
 def mollified_slip(u: Tensor, smoothing: float | Tensor) -> Tensor:
     """f0(‖u‖) in m, over the last axis of `u` (tangential displacements in m); ε = `smoothing` in m."""
-    length, square = _norm_and_square(u)
-    ramp = square / smoothing - length * square / (3.0 * smoothing**2) + smoothing / 3.0
-    return torch.where(length < smoothing, ramp, length)
+    return slip_value(*_norm_and_square(u), smoothing)
 
 
 def mollified_slip_gradient(u: Tensor, smoothing: float | Tensor) -> Tensor:
     """∇ₓ f0(‖P(x − x_n)‖) = f1(y)/y · u, shape `[..., d]` (dimensionless); f1/y = (2 − y/ε)/ε below ε."""
     length, _ = _norm_and_square(u)
-    below = length < smoothing
-    safe_length = torch.where(below, smoothing, length)
-    over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
-    return over_length[..., None] * u
+    return slip_gradient_scale(length, smoothing)[..., None] * u
 
 
 def mollified_slip_hessian(
@@ -66,12 +96,8 @@ def mollified_slip_hessian(
     falls as y grows, so q ≥ f0 everywhere, with equal value and slope at u).
     """
     length, _ = _norm_and_square(u)
-    below = length < smoothing
-    safe_length = torch.where(below, smoothing, length)
-    over_length = torch.where(below, (2.0 - length / smoothing) / smoothing, 1.0 / safe_length)
-    along = torch.where(below, -length / smoothing**2, -1.0 / safe_length)
-    if majorized is not None:
-        along = torch.where(majorized & ~below, torch.zeros_like(along), along)
+    over_length = slip_gradient_scale(length, smoothing)
+    along = slip_curvature_along(length, smoothing, majorized)
     unit = u / torch.where(length > 0, length, torch.ones_like(length))[..., None]
     outer = unit[..., :, None] * unit[..., None, :]
     return over_length[..., None, None] * projector + along[..., None, None] * outer
@@ -117,6 +143,13 @@ class LaggedFriction(ElementEnergy):
         # the vertices whose Hessian block is the majorizer's (`curvature_hint`), `[B, m]`
         self.majorized = torch.zeros(normal_force.shape, dtype=torch.bool, device=normals.device)
         self._index_contacts()
+        self._lay_out_batch_last()
+
+    def _lay_out_batch_last(self) -> None:
+        # x_n `[d, m, B]` and P `[d, d, m, B]`, batch innermost, for the batch-last kernels: read
+        # strided from the `[B, m, ...]` originals, each entry would be a gather of its own
+        self.previous_positions_t = self.previous_positions.permute(2, 1, 0).contiguous()
+        self.projector_t = self.projector.permute(2, 3, 1, 0).contiguous()
 
     def _index_contacts(self) -> None:
         # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark: their (entry,
@@ -136,6 +169,7 @@ class LaggedFriction(ElementEnergy):
             majorized=self.majorized[entries],
         )
         part._index_contacts()
+        part._lay_out_batch_last()
         return part
 
     def _slip(self, element_positions: Tensor) -> Tensor:
@@ -201,3 +235,37 @@ class LaggedFriction(ElementEnergy):
         slip = self._slip(element_positions)
         hessian = mollified_slip_hessian(slip, self.smoothing, self.projector, self.majorized)
         return self.weight[..., None, None] * hessian
+
+    def _slip_entries(self, corners: list[list[Tensor]]) -> tuple[list[Tensor], Tensor, Tensor]:
+        # u = P (x − x_n) by components `[m, B]`, with ‖u‖ and ‖u‖², batch innermost
+        dim = len(corners)
+        displacement = [corners[j][0] - self.previous_positions_t[j] for j in range(dim)]
+        slip = [sum(self.projector_t[i, j] * displacement[j] for j in range(dim)) for i in range(dim)]
+        square = sum(component * component for component in slip)
+        return slip, slip_length(square), square
+
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """`element_energy` `[m, B]` and μλ f1(y)/y · u per vertex, entry by entry with the batch
+        innermost (see `ElementEnergy.batch_last_energy_and_forces`)."""
+        slip, length, square = self._slip_entries(corners)
+        weight = self.weight.T
+        scale = weight * slip_gradient_scale(length, self.smoothing)
+        return weight * slip_value(length, square, self.smoothing), [[scale * u] for u in slip]
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """`element_hessian`'s upper entries `[m, B]`, batch innermost (see
+        `ElementEnergy.batch_last_hessian_entries`): μλ[(f1/y) P + (f1′ − f1/y) ûûᵀ]."""
+        slip, length, _ = self._slip_entries(corners)
+        weight = self.weight.T
+        across = weight * slip_gradient_scale(length, self.smoothing)
+        along = weight * slip_curvature_along(length, self.smoothing, self.majorized.T)
+        divisor = torch.where(length > 0, length, torch.ones_like(length))
+        unit = [u / divisor for u in slip]
+        dim = len(corners)
+        return [
+            across * self.projector_t[i, k] + along * unit[i] * unit[k]
+            for i in range(dim)
+            for k in range(i, dim)
+        ]

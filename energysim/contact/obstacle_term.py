@@ -169,6 +169,44 @@ class Obstacle(ElementEnergy, StepLimitingEnergy):
         weight = (self.barrier_stiffness * self.contact_area)[..., None, None]
         return weight * (second[..., None, None] * outer + first[..., None, None] * hessian)
 
+    def distance_derivative_entries(
+        self, points: list[Tensor]
+    ) -> tuple[Tensor, list[Tensor], list[list[Tensor]] | None]:
+        """`distance_derivatives` of the points whose coordinates are `points[i]` `[m, B]` (the
+        batch-last kernels' layout): the distance `[m, B]`, the gradient's components `[i]` and the
+        Hessian's `[i][k]`, or None where it vanishes. This default stacks the coordinates; a shape
+        with closed forms per coordinate overrides it (`HalfSpace`)."""
+        distance, gradient, hessian = self.distance_derivatives(torch.stack(points, dim=-1))
+        dim = len(points)
+        columns = [[hessian[..., i, k] for k in range(dim)] for i in range(dim)]
+        return distance, [gradient[..., i] for i in range(dim)], columns
+
+    def batch_last_energy_and_forces(
+        self, corners: list[list[Tensor]], action: Tensor | None
+    ) -> tuple[Tensor, list[list[Tensor]]]:
+        """κ a b(d) per vertex `[m, B]` and κ a b′(d) ∇d entry by entry, batch innermost (see
+        `ElementEnergy.batch_last_energy_and_forces`)."""
+        distance, gradient, _ = self.distance_derivative_entries([row[0] for row in corners])
+        first, _ = barrier_derivatives(distance, self.barrier_distance)
+        weight = (self.barrier_stiffness * self.contact_area)[:, None]
+        pressure = weight * first
+        return weight * barrier(distance, self.barrier_distance), [[pressure * g] for g in gradient]
+
+    def batch_last_hessian_entries(self, corners: list[list[Tensor]], action: Tensor | None) -> list[Tensor]:
+        """`element_hessian`'s upper entries κ a (b″ ∂_i d ∂_k d + b′ ∂_ik d) `[m, B]`, batch
+        innermost (see `ElementEnergy.batch_last_hessian_entries`)."""
+        distance, gradient, hessian = self.distance_derivative_entries([row[0] for row in corners])
+        first, second = barrier_derivatives(distance, self.barrier_distance)
+        weight = (self.barrier_stiffness * self.contact_area)[:, None]
+        curvature, pressure = weight * second, weight * first
+        dim = len(corners)
+        entries = []
+        for i in range(dim):
+            for k in range(i, dim):
+                value = curvature * gradient[i] * gradient[k]
+                entries.append(value if hessian is None else value + pressure * hessian[i][k])
+        return entries
+
     @property
     def collides_all_vertices(self) -> bool:
         """Whether every vertex of the mesh collides (the default): `element_vertices` is then 0..n−1."""

@@ -81,6 +81,13 @@ class HalfSpace(Obstacle):
         gradient = self.normal.to(points.dtype).expand_as(points)
         return distance, gradient, points.new_zeros(*points.shape, points.shape[-1])
 
+    def distance_derivative_entries(self, points: list[Tensor]) -> tuple[Tensor, list[Tensor], None]:
+        """The distance n·p − n·p₀, its constant gradient n and zero Hessian, per coordinate (see
+        `Obstacle.distance_derivative_entries`)."""
+        normal = self.normal.to(points[0].dtype)
+        distance = sum(points[i] * normal[i] for i in range(len(points))) - self.offset
+        return distance, [normal[i].expand_as(points[0]) for i in range(len(points))], None
+
     def time_of_impact(self, points: Tensor, motion: Tensor) -> Tensor:
         rate = (motion * self.normal).sum(dim=-1)
         approaching = rate < 0
