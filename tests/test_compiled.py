@@ -488,7 +488,7 @@ def test_a_function_that_fails_to_compile_warns_and_falls_back_to_eager(monkeypa
     def broken(*args: object) -> None:
         raise RuntimeError("no C++ compiler found")
 
-    monkeypatch.setattr(compiled, "_COMPILED", {("energy", "cpu"): broken})
+    monkeypatch.setattr(compiled, "_COMPILED", {("energy", "cpu", False): broken})
     monkeypatch.setattr(compiled, "_FAILED", set())
     _, objective, x = _worm_objective()
     eager = objective.energy(x)

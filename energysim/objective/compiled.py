@@ -211,14 +211,14 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
         )
     },
 }
-# On the CPU every function's host code is C++ (Inductor's `cpp_wrapper`): the default Python wrapper
-# allocates, aliases and checks each of a call's intermediate buffers in Python, some 150 lines a call
-# for the worm's band Hessian. For 64 worms (one thread) the band Hessian took 1.76 instead of 2.33
-# ms a call, the line search's trial 1.50 instead of 1.75, the env step 64 instead of 68-70 ms
-# (docs/envs.md); compiling a new scene takes longer the first time (about five minutes against
-# four for the worm env), then comes from the on-disk cache.
+# On the CPU a batch of `BATCH_LAST_MIN_BATCH` or more bodies (an RL env's, whose calls repeat for
+# hours) gets C++ host code (Inductor's `cpp_wrapper`): the default Python wrapper allocates, aliases
+# and checks each of a call's intermediate buffers in Python, some 150 lines a call for the worm's band
+# Hessian. For 64 worms (one thread) the band Hessian took 1.76 instead of 2.33 ms a call, the line
+# search's trial 1.50 instead of 1.75 (docs/envs.md). It compiles more slowly, so smaller batches (a
+# script's single body, most tests) keep the Python wrapper.
 _HOST_CODE: dict[str, dict[str, object]] = {"cpu": {"cpp_wrapper": True}}
-_COMPILED: dict[tuple[str, str], Callable] = {}
+_COMPILED: dict[tuple[str, str, bool], Callable] = {}
 _FAILED: set[str] = set()
 # A term's float attributes (a barrier's d̂, a friction's ε_v) stay constants of the graphs, guarded,
 # so that another value compiles graphs of its own. By default Dynamo makes such a float an input
@@ -243,21 +243,22 @@ def _floats_specialized() -> Iterator[None]:
         config.specialize_float = False
 
 
-def _compiled(name: str, device_type: str) -> Callable | None:
+def _compiled(name: str, device_type: str, host_code: bool = False) -> Callable | None:
     if name in _FAILED:
         return None
-    key = (name, device_type)
+    key = (name, device_type, host_code)
     if key not in _COMPILED:
-        options = {**_HOST_CODE.get(device_type, {}), **_OPTIONS.get(device_type, {}).get(name, {})}
+        options = dict(_HOST_CODE.get(device_type, {})) if host_code else {}
+        options.update(_OPTIONS.get(device_type, {}).get(name, {}))
         _COMPILED[key] = torch.compile(_SOURCES[name], options=options or None)
     return _COMPILED[key]
 
 
-def call(name: str, *args: object) -> object | None:
-    """The compiled function `name` applied to `args`, or None where it could not be compiled (a
-    warning says why, once per function); the caller then evaluates eagerly."""
+def call(name: str, *args: object, batch: int = 1) -> object | None:
+    """The compiled function `name` applied to `args`, for a batch of `batch` bodies, or None where it
+    could not be compiled (a warning says why, once per function); the caller then evaluates eagerly."""
     device = next((arg.device.type for arg in args if isinstance(arg, Tensor)), "cpu")
-    function = _compiled(name, device)
+    function = _compiled(name, device, batch >= BATCH_LAST_MIN_BATCH and device in _HOST_CODE)
     if function is None:
         return None
     try:
@@ -278,20 +279,20 @@ def energy(
     terms: Sequence[EnergyTerm], anchor: Tensor | None, action: Tensor | None, x: Tensor
 ) -> Tensor | None:
     """E(x) `[B]` by the compiled function, or None (evaluate eagerly)."""
-    return call("energy", tuple(terms), anchor, action, x)
+    return call("energy", tuple(terms), anchor, action, x, batch=x.shape[0])
 
 
 def term_energies(terms: Sequence[EnergyTerm], action: Tensor | None, x: Tensor) -> Tensor | None:
     """Every term's E_i(x) at `x` itself (no anchor), `[len(terms), B]`, by the compiled function, or
     None (evaluate eagerly)."""
-    return call("term_energies", tuple(terms), action, x)
+    return call("term_energies", tuple(terms), action, x, batch=x.shape[0])
 
 
 def energy_and_gradient(
     terms: Sequence[EnergyTerm], anchor: Tensor | None, action: Tensor | None, free: Tensor, x: Tensor
 ) -> tuple[Tensor, Tensor] | None:
     """E(x) `[B]` and ∇E(x) `[B, n, d]` (zero on fixed vertices) by the compiled function, or None."""
-    return call("energy_and_gradient", tuple(terms), anchor, action, free, x)
+    return call("energy_and_gradient", tuple(terms), anchor, action, free, x, batch=x.shape[0])
 
 
 def trial(
@@ -305,7 +306,8 @@ def trial(
     gradient: Tensor,
 ) -> tuple[Tensor, ...] | None:
     """`Objective.trial`'s seven results by one compiled function, or None."""
-    return call("trial", tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
+    arguments = (tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
+    return call("trial", *arguments, batch=x.shape[0])
 
 
 def cut_back(
@@ -317,7 +319,7 @@ def cut_back(
 ) -> tuple[Tensor, Tensor, Tensor] | None:
     """`Objective.cut_back`'s cuts and energies, and the step limits (NaN where `origin` is not
     admissible), by one compiled function, or None."""
-    return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets))
+    return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets), batch=origin.shape[0])
 
 
 # Leapfrog substeps per compiled call: unrolled into one generated loop nest, so the call's
@@ -353,7 +355,7 @@ def leapfrog(
     while done < substeps:
         chunk = min(LEAPFROG_CHUNK, substeps - done)
         arguments = (tuple(terms), tuple(obstacles), action, free, inverse_mass, x, v, step, chunk)
-        result = call("leapfrog", *arguments)
+        result = call("leapfrog", *arguments, batch=batch)
         if result is None:
             return None
         x, v = result
@@ -385,9 +387,10 @@ def _leapfrog_batch_last(
     viscous = (plan.dissipative, tuple(obstacles), free, inverse_mass)
     for substep in range(substeps):
         drift = step if substep < substeps - 1 else 0.5 * step
-        result = call("kick_batch_last", *elastic, x, v, step, None if plan.dissipative else drift)
+        kick_drift = None if plan.dissipative else drift
+        result = call("kick_batch_last", *elastic, x, v, step, kick_drift, batch=batch)
         if result is not None and plan.dissipative:
-            result = call("viscous_kick_batch_last", *viscous, *result, step, drift)
+            result = call("viscous_kick_batch_last", *viscous, *result, step, drift, batch=batch)
         if result is None:
             return None
         x, v = result

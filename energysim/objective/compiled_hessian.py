@@ -108,7 +108,8 @@ def _entries(
 
     def entries(function: str, of: tuple[EnergyTerm, ...], start: Tensor | None) -> Tensor | None:
         evaluated, grouped = arguments(of)
-        return call(function, evaluated, action, x, grouped, diagonal, length, start, single)
+        arguments_of = (evaluated, action, x, grouped, diagonal, length, start, single)
+        return call(function, *arguments_of, batch=x.shape[0])
 
     fixed = tuple(term for term in terms if term.has_constant_hessian and not term.is_linear)
     if constant is None or not fixed:
