@@ -240,7 +240,9 @@ def test_a_subset_objective_slices_the_constant_hessian_part_from_its_parent(
     names = []
     original = compiled.call
     monkeypatch.setattr(
-        compiled_hessian, "call", lambda name, *arguments: names.append(name) or original(name, *arguments)
+        compiled_hessian,
+        "call",
+        lambda name, *arguments, **options: names.append(name) or original(name, *arguments, **options),
     )
     generator = torch.Generator().manual_seed(2)
     y = x[entries] + 1e-4 * torch.randn(x[entries].shape, generator=generator, dtype=x.dtype)
