@@ -52,6 +52,8 @@ def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(batch: 
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
     compiled_energy, compiled_gradient = objective.energy_and_gradient(x)
+    # a batch of `BATCH_LAST_MIN_BATCH` runs the function compiled with C++ host code
+    assert ("energy_and_gradient", "cpu", batch >= BATCH_LAST_MIN_BATCH) in compiled._COMPILED
     assert torch.allclose(compiled_energy, energy, rtol=1e-12, atol=0)
     assert torch.allclose(objective.energy(x), eager_energy, rtol=1e-12, atol=0)
     assert torch.allclose(compiled_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))

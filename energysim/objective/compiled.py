@@ -214,9 +214,8 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
 # On the CPU a batch of `BATCH_LAST_MIN_BATCH` or more bodies (an RL env's, whose calls repeat for
 # hours) gets C++ host code (Inductor's `cpp_wrapper`): the default Python wrapper allocates, aliases
 # and checks each of a call's intermediate buffers in Python, some 150 lines a call for the worm's band
-# Hessian. For 64 worms (one thread) the band Hessian took 1.76 instead of 2.33 ms a call, the line
-# search's trial 1.50 instead of 1.75 (docs/envs.md). It compiles more slowly, so smaller batches (a
-# script's single body, most tests) keep the Python wrapper.
+# Hessian (what it saves is in docs/envs.md). It compiles more slowly, so smaller batches (a script's
+# single body, most tests) keep the Python wrapper.
 _HOST_CODE: dict[str, dict[str, object]] = {"cpu": {"cpp_wrapper": True}}
 _COMPILED: dict[tuple[str, str, bool], Callable] = {}
 _FAILED: set[str] = set()
