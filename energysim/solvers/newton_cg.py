@@ -72,15 +72,15 @@ class NewtonCG(Solver):
             `COMPILED_BAND_MAX_DOFS` (5,000) where the Hessian is assembled by a compiled function
             straight into band storage (`compile=True`, the band method, on the CPU).
         direct: how the direct solve factorises. "dense": one dense `[N, N]` Cholesky per batch
-            entry (N = n·d), ≈ B·N³/3 flops. "banded": LAPACK's band Cholesky in the level order
-            (`energysim.linalg.banded`), ≈ B·N·u² flops for half-bandwidth u, one call per entry, CPU only
-            (elsewhere it factorises dense). "levels": block-tridiagonal Cholesky over breadth-first
-            vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³ flops for L levels of at most
-            S DOFs, plus a fixed cost per level (a Python loop of small batched kernels). "auto"
-            picks by those estimates (`prefer_levels`, then `prefer_band`): banded for one worm on
-            the CPU (dense on CUDA), levels for batches of them; with `compile=True` banded on the
-            CPU for any batch (its Hessian assembled in band storage by a compiled function); on a
-            GPU, compiled, the level blocks by a compiled function too (`Objective.level_hessian`).
+            entry (N = n·d), ≈ B·N³/3 flops. "banded": band Cholesky in the level order
+            (`energysim.linalg.banded`: LAPACK's per entry, the C tile kernel for batches), ≈ B·N·u²
+            flops for half-bandwidth u, CPU only (elsewhere dense). "levels": block-tridiagonal
+            Cholesky over breadth-first vertex levels (`energysim.linalg.block_tridiagonal`), ≈ B·L·S³
+            flops for L levels of at most S DOFs, plus a Python loop of small batched kernels per
+            level. "auto" picks by those estimates (`prefer_levels`, then `prefer_band`): banded for
+            one worm on the CPU (dense on CUDA), levels for batches of them; with `compile=True`
+            banded on the CPU for any batch (H assembled in band storage by a compiled function),
+            and on a GPU the level blocks by a compiled function (`Objective.level_hessian`).
         compact_below: once at most this fraction of a batch's entries still iterates, go on with those alone
             (`Objective.subset`: the step builds their objective from their slice of the state) rather than
             compute on every entry until the slowest has converged; each later halving compacts again.
@@ -292,11 +292,8 @@ class NewtonCG(Solver):
         def operator() -> HessianOperator:
             # built on first use: a compiled direct solve that succeeds needs none
             if not operators:
-                operators.append(
-                    objective.hessian(
-                        x, use_element_blocks=self.hessian == "elements", project=self.project_hessian
-                    )
-                )
+                blocks, project = self.hessian == "elements", self.project_hessian
+                operators.append(objective.hessian(x, use_element_blocks=blocks, project=project))
             return operators[0]
 
         built: list[Callable[[Tensor], Tensor]] = []
