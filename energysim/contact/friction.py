@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from energysim.energies.base import ElementEnergy
+from energysim.linalg.batch_innermost import batch_innermost
 from energysim.linalg.small_matmul import small_matmul
 
 
@@ -146,10 +147,11 @@ class LaggedFriction(ElementEnergy):
         self._lay_out_batch_last()
 
     def _lay_out_batch_last(self) -> None:
-        # x_n `[d, m, B]` and P `[d, d, m, B]`, batch innermost, for the batch-last kernels: read
-        # strided from the `[B, m, ...]` originals, each entry would be a gather of its own
-        self.previous_positions_t = self.previous_positions.permute(2, 1, 0).contiguous()
-        self.projector_t = self.projector.permute(2, 3, 1, 0).contiguous()
+        # x_n `[d, m, B]`, P `[d, d, m, B]` and μλ `[m, B]`, batch innermost, for the batch-last
+        # kernels: read strided from the `[B, m, ...]` originals, each entry would be a gather of its own
+        self.previous_positions_t = batch_innermost(self.previous_positions, 2, 1, 0)
+        self.projector_t = batch_innermost(self.projector, 2, 3, 1, 0)
+        self.weight_t = batch_innermost(self.weight, 1, 0)
 
     def _index_contacts(self) -> None:
         # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark: their (entry,
@@ -250,7 +252,7 @@ class LaggedFriction(ElementEnergy):
         """`element_energy` `[m, B]` and μλ f1(y)/y · u per vertex, entry by entry with the batch
         innermost (see `ElementEnergy.batch_last_energy_and_forces`)."""
         slip, length, square = self._slip_entries(corners)
-        weight = self.weight.T
+        weight = self.weight_t
         scale = weight * slip_gradient_scale(length, self.smoothing)
         return weight * slip_value(length, square, self.smoothing), [[scale * u] for u in slip]
 
@@ -258,7 +260,7 @@ class LaggedFriction(ElementEnergy):
         """`element_hessian`'s upper entries `[m, B]`, batch innermost (see
         `ElementEnergy.batch_last_hessian_entries`): μλ[(f1/y) P + (f1′ − f1/y) ûûᵀ]."""
         slip, length, _ = self._slip_entries(corners)
-        weight = self.weight.T
+        weight = self.weight_t
         across = weight * slip_gradient_scale(length, self.smoothing)
         along = weight * slip_curvature_along(length, self.smoothing, self.majorized.T)
         divisor = torch.where(length > 0, length, torch.ones_like(length))

@@ -44,6 +44,7 @@ from energysim.fem.kinematics import (
     shape_gradients,
     simplex_rest_frame,
 )
+from energysim.linalg.batch_innermost import batch_innermost
 from energysim.linalg.small_matmul import small_matmul
 from energysim.mesh import SimplexMesh
 
@@ -116,7 +117,9 @@ class Viscosity(DissipativeEnergy):
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """This step's `LaggedViscosity`, with F at the step's start `x_prev` `[B, n, d]`."""
-        F = deformation_gradient(x_prev[:, self.element_vertices], self.rest_edge_inverse)
+        # F = Σ_b x_b ⊗ ∇N_b in one contraction: for 64 worms 1.1 ms where Ds Dm⁻¹ (the edge matrix,
+        # then a batched 3×3 product) took 2.2 ms of every step, eagerly
+        F = torch.einsum("bmki,mkj->bmij", x_prev[:, self.element_vertices], self.shape_gradient)
         return [LaggedViscosity(self, F, dt)]
 
 
@@ -148,7 +151,7 @@ class LaggedViscosity(ElementEnergy):
         self.start_gradient = start_gradient
         # F_n batch innermost, `[d, d, m, B]`, for the batch-last kernels: read strided from
         # `start_gradient`, the constant Hessian entries took longer than the neo-Hookean ones
-        self.start_gradient_t = start_gradient.permute(2, 3, 1, 0).contiguous()
+        self.start_gradient_t = batch_innermost(start_gradient, 2, 3, 1, 0)
         # η V / h per element, a tensor: compiled evaluations then need no new graph for a new h
         step = torch.as_tensor(dt, dtype=start_gradient.dtype, device=start_gradient.device)
         self.weight = viscosity.viscosity * viscosity.rest_volume / step
@@ -157,7 +160,7 @@ class LaggedViscosity(ElementEnergy):
         """This step's viscosity for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
         return self._with(
             start_gradient=self.start_gradient[entries],
-            start_gradient_t=self.start_gradient_t[..., entries].contiguous(),
+            start_gradient_t=batch_innermost(self.start_gradient_t[..., entries], 0, 1, 2, 3),
         )
 
     def _strain(self, element_positions: Tensor) -> Tensor:
