@@ -9,7 +9,7 @@ loops. The two kinds of loop do not fuse, so the flat ones wrote their results t
 others read them back: some twenty `[m, B]` buffers for the lagged viscosity alone in the worm's
 line-search trial. With the rows `BATCH_ROW_PADDING` numbers further apart than B, no loop over
 them can be flattened, and they fuse: the 64-worm trial took 2.00 instead of 2.23 ms, the step
-0.92× (docs/envs.md, "Batch-innermost data in padded rows").
+0.94× (docs/envs.md, "Batch-innermost data in padded rows").
 """
 
 from __future__ import annotations
