@@ -158,9 +158,9 @@ class LaggedViscosity(ElementEnergy):
 
     def rows(self, entries: Tensor) -> LaggedViscosity:
         """This step's viscosity for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
+        start_gradient = self.start_gradient[entries]
         return self._with(
-            start_gradient=self.start_gradient[entries],
-            start_gradient_t=batch_innermost(self.start_gradient_t[..., entries], 0, 1, 2, 3),
+            start_gradient=start_gradient, start_gradient_t=batch_innermost(start_gradient, 2, 3, 1, 0)
         )
 
     def _strain(self, element_positions: Tensor) -> Tensor:
