@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 from torch.func import grad, jvp, vjp, vmap
 
+from energysim.compile_settings import package_compile_settings
 from energysim.energies.base import ElementEnergy
 from energysim.fem.kinematics import deformation_gradient, shape_gradients, simplex_rest_frame
 from energysim.linalg.small_matmul import small_matmul
@@ -221,7 +222,7 @@ def _run_kernel(name: str, term: DensityEnergy, element_positions: Tensor, alway
             # static shapes: forward-mode derivatives do not trace with symbolic sizes
             _COMPILED[key] = torch.compile(_KERNELS[name], options=options, dynamic=False)
         try:
-            with torch.no_grad():
+            with torch.no_grad(), package_compile_settings():
                 return _COMPILED[key](term, element_positions)
         except Exception as error:  # noqa: BLE001 - any compiler failure means: evaluate eagerly
             _FAILED.add(key)

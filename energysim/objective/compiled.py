@@ -32,12 +32,12 @@ over.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
+from energysim.compile_settings import package_compile_settings
 from energysim.contact.projection import project_contacts
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
 from energysim.objective import batch_last, evaluation
@@ -219,27 +219,6 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
 _HOST_CODE: dict[str, dict[str, object]] = {"cpu": {"cpp_wrapper": True}}
 _COMPILED: dict[tuple[str, str, bool], Callable] = {}
 _FAILED: set[str] = set()
-# A term's float attributes (a barrier's d̂, a friction's ε_v) stay constants of the graphs, guarded,
-# so that another value compiles graphs of its own. By default Dynamo makes such a float an input
-# of the graph once it has met a second value, and in torch 2.13 those graphs kept the value they
-# were first traced with in some operations (`torch.where(t < d, t, d)`, `full_like(t, d)`): the
-# barrier's energy of one scene evaluated with the d̂ of another, so two compiled environments with
-# different grounds in one process failed their solves. Set and restored around each call by hand:
-# `torch._dynamo.config.patch` costs 0.12 ms a call, 6 ms a step of 64 worms (some 50 calls).
-_SPECIALIZES_FLOATS = hasattr(torch._dynamo.config, "specialize_float")
-
-
-@contextmanager
-def _floats_specialized() -> Iterator[None]:
-    config = torch._dynamo.config
-    if not _SPECIALIZES_FLOATS or config.specialize_float:
-        yield
-        return
-    config.specialize_float = True
-    try:
-        yield
-    finally:
-        config.specialize_float = False
 
 
 def _compiled(name: str, device_type: str, host_code: bool = False) -> Callable | None:
@@ -261,7 +240,7 @@ def call(name: str, *args: object, batch: int = 1) -> object | None:
     if function is None:
         return None
     try:
-        with torch.no_grad(), _floats_specialized():
+        with torch.no_grad(), package_compile_settings():
             return function(*args)
     except Exception as error:  # noqa: BLE001 - any compiler failure means: evaluate eagerly
         _FAILED.add(name)
