@@ -10,8 +10,8 @@ import torch
 
 # Graphs Dynamo may keep per compiled function before it runs the function eagerly. Torch's default
 # (8) fits one scene: a compacting batch of 64 worms leaves the line search's trial with eight graphs
-# (the whole batch, one row, two to seven rows, more; each where the search direction is a view of
-# the linear solve's storage and where it is a tensor of its own, which Dynamo tells apart). A second
+# (the whole batch, one row, two to seven rows, more; most of them twice, with the search direction a
+# view of the linear solve's storage and a tensor of its own, which Dynamo tells apart). A second
 # scene in the same process (a quadruped after the worm, a float32 env beside a float64 one) would
 # then get no graphs of its own and run those evaluations eagerly, several times slower, with only a
 # log line to tell. The derived kernels compile with static shapes, one graph per element count.
