@@ -41,7 +41,7 @@ def test_a_package_function_keeps_a_graph_for_each_of_many_shapes():
 def test_outside_the_package_calls_torch_defaults_hold():
     config = torch._dynamo.config
     before = (config.recompile_limit, config.specialize_float)
-    assert _graphs_for_sizes(range(1, 13), settings=False) == config.recompile_limit
+    assert _graphs_for_sizes(range(1, 13), settings=False) == min(12, config.recompile_limit)
     with package_compile_settings():
         assert config.recompile_limit == RECOMPILE_LIMIT
         assert config.specialize_float
