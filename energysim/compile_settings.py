@@ -36,18 +36,17 @@ def package_compile_settings() -> Iterator[None]:
     Set and restored by hand: `torch._dynamo.config.patch` costs 0.12 ms a call, 6 ms a step of 64
     worms (some 50 calls)."""
     config = torch._dynamo.config
-    saved: dict[str, object] = {}
+    wanted: dict[str, object] = {}
     if _SPECIALIZES_FLOATS and not config.specialize_float:
-        saved["specialize_float"] = False
+        wanted["specialize_float"] = True
     if _LIMIT_NAME is not None and getattr(config, _LIMIT_NAME) < RECOMPILE_LIMIT:
-        saved[_LIMIT_NAME] = getattr(config, _LIMIT_NAME)
-    if not saved:
+        wanted[_LIMIT_NAME] = RECOMPILE_LIMIT
+    if not wanted:
         yield
         return
-    if "specialize_float" in saved:
-        config.specialize_float = True
-    if _LIMIT_NAME in saved:
-        setattr(config, _LIMIT_NAME, RECOMPILE_LIMIT)
+    saved = {name: getattr(config, name) for name in wanted}
+    for name, value in wanted.items():
+        setattr(config, name, value)
     try:
         yield
     finally:
