@@ -13,6 +13,7 @@ import energysim as es
 from energysim.contact.friction import LaggedFriction
 from energysim.contact.obstacles import CCD_SAFETY
 from energysim.creatures import load_creature, resting_state
+from energysim.energies.base import EnergyTerm
 from energysim.integrators.adjoint import step_terms
 from energysim.integrators.common import state_energies
 from energysim.integrators.implicit_stage import rows_of
@@ -77,6 +78,15 @@ def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissibl
     for name in ("step", "x", "energy", "gradient", "slope", "trial_slope", "residual"):
         value, reference = getattr(fast, name), getattr(eager, name)
         assert torch.allclose(value, reference, rtol=1e-10, atol=1e-9 * float(reference.abs().max())), name
+    # a batch evaluated batch-last also gives the friction's curvature hints of an iteration ending
+    # at the trial, as the term itself marks them; eagerly and element-major, the solver asks the term
+    assert eager.hints is None
+    if batch < BATCH_LAST_MIN_BATCH:
+        assert fast.hints is None
+    else:
+        hinting = [term for term in objective.terms if term.has_curvature_hint]
+        assert len(hinting) == len(fast.hints) == 1
+        assert torch.equal(fast.hints[0], hinting[0].curvature_hint(x, fast.x))
     inside = x.clone()
     inside[1, 3, 1] = -1e-3  # one vertex below the ground, in the second entry only
     with pytest.raises(ValueError, match=r"not admissible: vertices \[3\]"):
@@ -255,6 +265,34 @@ def test_a_subset_objective_slices_the_constant_hessian_part_from_its_parent(
     dense = part.hessian(y).dense(y)
     reference = _without_corner(dense.reshape(len(rows), -1)[:, layout.band_entries])
     assert torch.allclose(_without_corner(bands), reference, rtol=0, atol=1e-9 * float(dense.abs().max()))
+
+
+def test_a_subset_objective_takes_the_float32_copies_of_the_scene_terms_from_its_parent(monkeypatch):
+    # with float32 Hessians the translation-invariant terms are evaluated from float32 copies; the
+    # scene's terms serve every subset of a solve as they are, so a subset uses its parent's copies,
+    # and its Hessian is still the eager one of its rows to float32's precision
+    scene, objective, x = _worm_objective(batch=10, viscosity=True)
+    layout = level_layout_of(objective.element_groups(), x)
+    objective.compiled = True
+    objective.band_hessian(x, layout, single=True)
+    copied = []
+    original = EnergyTerm.in_precision
+    monkeypatch.setattr(
+        EnergyTerm, "in_precision", lambda term, dtype: copied.append(term) or original(term, dtype)
+    )
+    entries = torch.tensor([0, 2, 3, 4, 5, 7, 8, 9])
+    part = rows_of(objective, scene.terms, entries)
+    generator = torch.Generator().manual_seed(3)
+    y = x[entries] + 1e-4 * torch.randn(x[entries].shape, generator=generator, dtype=x.dtype)
+    part.compiled = True
+    bands = part.band_hessian(y, layout, single=True)
+    assert copied == []
+    assert bands.dtype == torch.float32
+    part.compiled = False
+    dense = part.hessian(y).dense(y)
+    reference = _without_corner(dense.reshape(len(entries), -1)[:, layout.band_entries])
+    tolerance = 1e-5 * float(dense.abs().max())
+    assert torch.allclose(_without_corner(bands).double(), reference, rtol=0, atol=tolerance)
 
 
 def test_the_terms_declared_constant_have_the_same_hessian_everywhere():

@@ -118,6 +118,34 @@ def test_the_hint_marks_only_vertices_in_contact_and_follows_their_entries_and_r
     assert rows.curvature_hint(previous[[1, 0]], current[[1, 0]]).tolist() == [[True, True], [True, False]]
 
 
+def test_the_batch_last_hint_marks_what_the_hint_marks():
+    # the compiled line-search trial's form (`batch_last_curvature_hint`, the batch innermost, every
+    # vertex) against the term's own: random slips around ε, some reversed, some without normal force
+    from energysim.objective.batch_last import curvature_hints
+
+    generator = torch.Generator().manual_seed(4)
+    batch, count, vertices = 9, 12, 15
+    state_vertices = torch.randperm(vertices, generator=generator)[:count, None]
+    normals = torch.nn.functional.normalize(
+        torch.randn(batch, count, 3, generator=generator, dtype=torch.float64), dim=-1
+    )
+    normal_force = torch.rand(batch, count, generator=generator, dtype=torch.float64)
+    normal_force[normal_force < 0.3] = 0.0
+    start = torch.randn(batch, count, 3, generator=generator, dtype=torch.float64)
+    term = LaggedFriction(state_vertices, start, normals, normal_force, torch.tensor(0.4), SMOOTHING)
+    previous = torch.randn(batch, vertices, 3, generator=generator, dtype=torch.float64)
+    current = torch.randn(batch, vertices, 3, generator=generator, dtype=torch.float64)
+    for state in (previous, current):  # slips of 0–4 ε from x_n
+        scale = 4 * SMOOTHING * torch.rand(batch, count, 1, generator=generator, dtype=torch.float64)
+        state[:, state_vertices[:, 0]] = start + scale * torch.nn.functional.normalize(
+            state[:, state_vertices[:, 0]], dim=-1
+        )
+    expected = term.curvature_hint(previous, current)
+    assert 0 < int(expected.sum()) < int((normal_force > 0).sum())  # some marked, not all
+    (hint,) = curvature_hints([term], previous, current)
+    assert torch.equal(hint, expected)
+
+
 def test_a_vertex_pulled_back_into_its_static_zone_rests_where_the_force_balance_says():
     # inertia k = m/h² pulling towards a = 0.6 mm against μλ = 10 N (k a = 6 N < μλ): the vertex
     # sticks at the root below ε of k(u − a) + μλ(2u/ε − u²/ε²) = 0. From a start sliding 2–10 mm

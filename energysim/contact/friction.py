@@ -143,7 +143,7 @@ class LaggedFriction(ElementEnergy):
         self.smoothing = torch.as_tensor(smoothing, dtype=normals.dtype, device=normals.device)
         # the vertices whose Hessian block is the majorizer's (`curvature_hint`), `[B, m]`
         self.majorized = torch.zeros(normal_force.shape, dtype=torch.bool, device=normals.device)
-        self._index_contacts()
+        self._contacts: tuple[Tensor, ...] | None = None  # `_contact_index`, built on first use
         self._lay_out_batch_last()
 
     def _lay_out_batch_last(self) -> None:
@@ -153,14 +153,21 @@ class LaggedFriction(ElementEnergy):
         self.projector_t = batch_innermost(self.projector, 2, 3, 1, 0)
         self.weight_t = batch_innermost(self.weight, 1, 0)
 
-    def _index_contacts(self) -> None:
-        # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark: their (entry,
-        # vertex) pairs, x_n and projectors, gathered once a step rather than at every iteration
-        entry, vertex = torch.nonzero(self.weight.detach() > 0, as_tuple=True)
-        self._contact_entry, self._contact_vertex = entry, self.element_vertices[vertex, 0]
-        self._contact_slot = entry * self.weight.shape[-1] + vertex  # in a flattened `[B, m]`
-        self._contact_start = self.previous_positions.detach()[entry, vertex]
-        self._contact_projector = self.projector.detach()[entry, vertex]
+    def _contact_index(self) -> tuple[Tensor, ...]:
+        # the vertices in contact (λ > 0), the only ones `curvature_hint` can mark: their entries,
+        # state vertices, slots in a flattened `[B, m]`, x_n and projectors, gathered once per term
+        # (a step's, or its rows') rather than at every iteration, and only where the eager hint is
+        # asked for: a compiled batch's line search mostly gives it (`batch_last_curvature_hint`)
+        if self._contacts is None:
+            entry, vertex = torch.nonzero(self.weight.detach() > 0, as_tuple=True)
+            self._contacts = (
+                entry,
+                self.element_vertices[vertex, 0],
+                entry * self.weight.shape[-1] + vertex,
+                self.previous_positions.detach()[entry, vertex],
+                self.projector.detach()[entry, vertex],
+            )
+        return self._contacts
 
     def rows(self, entries: Tensor) -> LaggedFriction:
         """This step's friction for the batch entries `entries` alone (see `EnergyTerm.rows`)."""
@@ -170,7 +177,7 @@ class LaggedFriction(ElementEnergy):
             weight=self.weight[entries],
             majorized=self.majorized[entries],
         )
-        part._index_contacts()
+        part._contacts = None
         part._lay_out_batch_last()
         return part
 
@@ -206,15 +213,29 @@ class LaggedFriction(ElementEnergy):
         # eager, on the contact vertices alone (the others have no friction to mark), by matrix
         # products, not sums over a last axis of 3, which are slow in eager code
         batch, count, dim = *self.majorized.shape, current.shape[-1]
-        rows = self._contact_entry * current.shape[1] + self._contact_vertex
-        after = self._contact_projector @ (current.reshape(-1, dim)[rows] - self._contact_start)[..., None]
+        entry, vertex, slot, start, projector = self._contact_index()
+        rows = entry * current.shape[1] + vertex
+        after = projector @ (current.reshape(-1, dim)[rows] - start)[..., None]
         # the projector is symmetric and idempotent: P(x₀ − x_n)·u = (x₀ − x_n)·u
-        before = (previous.reshape(-1, dim)[rows] - self._contact_start)[..., None, :]
+        before = (previous.reshape(-1, dim)[rows] - start)[..., None, :]
         before_along = (before @ after)[..., 0, 0]
         sliding = torch.linalg.vector_norm(after[..., 0], dim=-1) > self.smoothing
         hint = torch.zeros(batch * count, dtype=torch.bool, device=current.device)
-        hint[self._contact_slot] = sliding & (before_along < 0)
+        hint[slot] = sliding & (before_along < 0)
         return hint.reshape(batch, count)
+
+    def batch_last_curvature_hint(
+        self, start_corners: list[list[Tensor]], corners: list[list[Tensor]]
+    ) -> Tensor:
+        """`curvature_hint` with the batch innermost, `[m, B]` bool, from the vertices' positions at
+        the iteration's start and end as `[i][0]` `[m, B]` (`energysim.objective.batch_last`): fixed
+        shapes, so that the compiled line-search trial gives it with its other results and the
+        solver needs no eager call where the search takes that trial. Checked against
+        `curvature_hint` (tests/test_friction_curvature.py)."""
+        slip, length, _ = self._slip_entries(corners)
+        dim = len(corners)
+        before_along = sum((start_corners[i][0] - self.previous_positions_t[i]) * slip[i] for i in range(dim))
+        return (self.weight_t > 0) & (length > self.smoothing) & (before_along < 0)
 
     def set_curvature_hint(self, hint: Tensor) -> None:
         """Record `curvature_hint`'s marks for the next Hessian blocks."""

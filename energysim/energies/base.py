@@ -115,6 +115,15 @@ class EnergyTerm(nn.Module):
         residual alone; the adjoint builds the step's terms anew, with exact blocks."""
         raise NotImplementedError(f"{type(self).__name__} declares no curvature hint")
 
+    def batch_last_curvature_hint(
+        self, start_corners: list[list[Tensor]], corners: list[list[Tensor]]
+    ) -> Tensor | None:
+        """`curvature_hint` with the batch innermost, `[m, B]`, from the element corners' positions at
+        an iteration's start and end as `[i][b]` `[m, B]` (`energysim.objective.batch_last`), where
+        the class gives one; None otherwise. A compiled line-search trial computes it with its other
+        results (`energysim.objective.evaluation.trial`)."""
+        return None
+
     def set_curvature_hint(self, hint: Tensor) -> None:
         """Record a `curvature_hint` for the next Hessian blocks."""
         raise NotImplementedError(f"{type(self).__name__} declares no curvature hint")

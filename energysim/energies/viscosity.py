@@ -117,10 +117,16 @@ class Viscosity(DissipativeEnergy):
 
     def lagged_terms(self, x_prev: Tensor, dt: float) -> list[EnergyTerm]:
         """This step's `LaggedViscosity`, with F at the step's start `x_prev` `[B, n, d]`."""
-        # F = Σ_b x_b ⊗ ∇N_b in one contraction rather than the edge matrix and a batched 3×3 product
-        # (Ds Dm⁻¹): this runs eagerly at every step, and one kernel costs less than three
-        F = torch.einsum("bmki,mkj->bmij", x_prev[:, self.element_vertices], self.shape_gradient)
-        return [LaggedViscosity(self, F, dt)]
+        # F = Σ_b x_b ⊗ ∇N_b, eagerly at every step: one batched product per element over the corners
+        # gathered with the batch innermost, (F_ij)ᵀ per entry `[m, j, i, B]`, whose view `[B, m, i, j]`
+        # is F and whose batch-last copy (`LaggedViscosity.start_gradient_t`) reads rows of B numbers;
+        # an `einsum` over the `[B, m, k, d]` corners cost several times more (docs/envs.md)
+        elements, corners, dim = self.shape_gradient.shape
+        batch = x_prev.shape[0]
+        positions = x_prev.permute(1, 2, 0).contiguous()[self.element_vertices]  # [m, k, d, B]
+        columns = positions.reshape(elements, corners, dim * batch)
+        transposed = torch.bmm(self.shape_gradient.transpose(1, 2), columns)
+        return [LaggedViscosity(self, transposed.reshape(elements, dim, dim, batch).permute(3, 0, 2, 1), dt)]
 
 
 class LaggedViscosity(ElementEnergy):

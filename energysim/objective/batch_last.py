@@ -191,6 +191,25 @@ def element_energy_and_gradient(
     return total, gradient.T.reshape(batch, n, dim)
 
 
+def curvature_hints(terms: Sequence[EnergyTerm], start: Tensor, end: Tensor) -> tuple[Tensor, ...] | None:
+    """The curvature hints of an iteration from `start` to `end` (`[B, n, d]`) of every term that
+    declares them (`EnergyTerm.batch_last_curvature_hint`), `[B, m]` each, in the terms' order; None
+    where one of them has no batch-last form."""
+    batch, n, dim = start.shape
+    start_states, states = start.reshape(batch, n * dim).T, end.reshape(batch, n * dim).T
+    hints = []
+    for term in terms:
+        if not term.has_curvature_hint:
+            continue
+        corner_dofs = _corner_dofs(term, dim, start.device)
+        starts, ends = _corners(start_states, corner_dofs), _corners(states, corner_dofs)
+        hint = term.batch_last_curvature_hint(starts, ends)
+        if hint is None:
+            return None
+        hints.append(hint.T)
+    return tuple(hints)
+
+
 def _same_elements(terms: Sequence[EnergyTerm]) -> list[list[int]]:
     # `terms` grouped by the identity of their `element_vertices`: `element_groups` compares contents,
     # which a compiled function would have to leave its graph for

@@ -283,7 +283,7 @@ def trial(
     direction: Tensor,
     gradient: Tensor,
 ) -> tuple[Tensor, ...] | None:
-    """`Objective.trial`'s seven results by one compiled function, or None."""
+    """`Objective.trial`'s results (`evaluation.trial`) by one compiled function, or None."""
     arguments = (tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
     return call("trial", *arguments, batch=x.shape[0])
 

@@ -101,7 +101,8 @@ def _entries(
             for member in members if relative else ():
                 copy_key = ("float32", id(of[member]))
                 if copy_key not in copies:
-                    copies[copy_key] = of[member].in_precision(torch.float32)
+                    kept = _kept_copy(copies, copy_key)
+                    copies[copy_key] = of[member].in_precision(torch.float32) if kept is None else kept
                 evaluated[member] = copies[copy_key]
             grouped.append((members, positions(of[members[0]].element_vertices), relative))
         return tuple(evaluated), tuple(grouped)
@@ -124,6 +125,19 @@ def _entries(
     # (no varying terms: the call copies the start into the returned storage)
     varying = tuple(term for term in terms if not term.has_constant_hessian and not term.is_linear)
     return entries(name, varying, start)
+
+
+def _kept_copy(cache: dict[object, object], key: object) -> EnergyTerm | None:
+    # the float32 copy of a term under `key` that the objective this one is rows of keeps (`PARENT`),
+    # or None. A term without per-entry data is the same object in every subset of a solve (its
+    # `rows` is itself), and the parent holds it alive, so its id names it there too.
+    link = cache.get(PARENT)
+    while link is not None:
+        cache = link[0]
+        if key in cache:
+            return cache[key]
+        link = cache.get(PARENT)
+    return None
 
 
 def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:

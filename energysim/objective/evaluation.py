@@ -97,14 +97,18 @@ def trial(
 ) -> tuple[Tensor, ...]:
     """A line search's first trial from `x` along `direction` (`gradient` = ∇E(x)): the unchecked
     step limit `[B]`, where it lands `[B, n, d]`, E `[B]` and ∇E `[B, n, d]` there, the slopes of E
-    along `direction` at both ends `[B]`, and the velocity residual there `[B]` (`LineTrial`)."""
+    along `direction` at both ends `[B]`, the velocity residual there `[B]`, and where the element
+    terms are evaluated batch-last, the curvature hints of an iteration from `x` to there
+    (`batch_last.curvature_hints`; None otherwise) (`LineTrial`)."""
     limit = step_limit(terms, x, direction)
     trial_x = x + limit[:, None, None] * direction
     energy, trial_gradient = energy_and_gradient(terms, anchor, action, free, trial_x)
     slope = (gradient * direction).sum(dim=(-1, -2))
     trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
     residual = (trial_gradient * residual_scale[:, None]).abs().amax(dim=(-1, -2))
-    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual
+    batched = batch_last.evaluates_batch_last(terms, x)
+    hints = batch_last.curvature_hints(terms, x, trial_x) if batched else None
+    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual, hints
 
 
 def cut_back(

@@ -25,6 +25,9 @@ class LineTrial:
         energy: E there `[B]`, in J; gradient: ∇E there `[B, n, d]`, in N.
         slope: the slope of E along the direction at the start `[B]`, in J; trial_slope: at `x`.
         residual: the velocity residual at `x` `[B]`, in m/s.
+        hints: the curvature hints of an iteration that ends at `x`, one per term that declares
+            them, in the terms' order (`Objective.update_curvature_hints`), where the evaluation
+            gave them (a compiled batch's); None otherwise.
     """
 
     step: Tensor
@@ -34,6 +37,7 @@ class LineTrial:
     slope: Tensor
     trial_slope: Tensor
     residual: Tensor
+    hints: tuple[Tensor, ...] | None = None
 
 
 @dataclass
@@ -116,13 +120,19 @@ class Objective:
         objective must be those rows of `parent`: its constant terms sliced from the parent's."""
         self._constant_hessians[compiled_hessian.PARENT] = (parent._constant_hessians, entries)
 
-    def update_curvature_hints(self, previous: Tensor, current: Tensor) -> None:
+    def update_curvature_hints(
+        self, previous: Tensor, current: Tensor, hints: Sequence[Tensor] | None = None
+    ) -> None:
         """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
-        adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). Eager: a few small
-        operations, which a compiled call's guards would cost more than (docs/contact.md)."""
-        for term in self.terms:
-            if term.has_curvature_hint:
-                term.set_curvature_hint(term.curvature_hint(previous, current))
+        adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). `hints`: those terms'
+        hints for it, in their order, where the caller has them (`LineTrial.hints`, of a line search
+        that ended at its first trial); else they are computed here, eagerly: a few small
+        operations, which a compiled call of their own would cost more than (docs/contact.md)."""
+        hinting = [term for term in self.terms if term.has_curvature_hint]
+        if hints is None:
+            hints = [term.curvature_hint(previous, current) for term in hinting]
+        for term, hint in zip(hinting, hints, strict=True):
+            term.set_curvature_hint(hint)
 
     def residual(self, gradient: Tensor) -> Tensor:
         """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""

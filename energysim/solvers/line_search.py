@@ -117,6 +117,9 @@ class LineStep:
             measured it or was given it; NaN for entries it was not measured for, None where it
             was measured for none. A solver passes it to its next searches (`line_step`'s
             `noise`), which then measure only the entries still without one.
+        hints: the curvature hints of the iteration from the search's start to `x`
+            (`LineTrial.hints`), where every entry took the first trial and the trial gave them;
+            None otherwise.
     """
 
     step: Tensor
@@ -127,6 +130,7 @@ class LineStep:
     unjudged: Tensor
     allowance: Tensor
     noise: Tensor | None = None
+    hints: tuple[Tensor, ...] | None = None
 
 
 # A predicted decrease above this fraction of |E| is far above any rounding noise measured relative
@@ -219,6 +223,7 @@ def line_step(
     first = objective.trial(x, direction, gradient)
     initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient
     slope, trial_slope, trial_residual = first.slope, first.trial_slope, first.residual
+    hints = first.hints
     rounding = _rounding(x, energy)
     measured = False
 
@@ -252,7 +257,7 @@ def line_step(
         # refused t, below t where φ'(t) > 0, so inside the admissible segment
         curvature = torch.where(overshot, trial_slope - slope, torch.ones_like(slope))
         initial = torch.where(overshot, -initial * slope / curvature, initial)
-        trial_x = x + initial[:, None, None] * direction
+        trial_x, hints = x + initial[:, None, None] * direction, None
         trial_energy, trial_gradient = objective.energy_and_gradient(trial_x)
         trial_slope = (trial_gradient * direction).sum(dim=(-1, -2))
         trial_residual = objective.residual(trial_gradient)
@@ -266,7 +271,7 @@ def line_step(
     judged = unjudged & decrease & slope_decrease
     if bool((unjudged | decrease).all()):
         found = (trial_energy, trial_gradient, trial_residual)
-        return LineStep(initial, trial_x, *found, unjudged & ~judged, rounding, measured_noise[0])
+        return LineStep(initial, trial_x, *found, unjudged & ~judged, rounding, measured_noise[0], hints)
     refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
     part = restrict(refusing) if alone(refusing) else None
     if part is not None:

@@ -234,7 +234,7 @@ class NewtonCG(Solver):
             # a step too small for the energy to judge stands only if the residual fell; if not,
             # this is as far as the precision goes: keep the better point and stop that entry
             worse = active & search.unjudged & (search.residual >= residual)
-            previous = x
+            previous, hints = x, search.hints
             if skips_copies and not bool(worse.any()):  # most iterations take every row's search
                 x, new_energy, residual = search.x, search.energy, search.residual
                 gradient = in_layout_of(gradient, search.gradient)
@@ -245,7 +245,9 @@ class NewtonCG(Solver):
                 gradient = torch.where(keep, gradient, search.gradient)
                 new_energy = torch.where(worse, energy, search.energy)
                 residual = torch.where(worse, residual, search.residual)
-            objective.update_curvature_hints(previous, x)
+                # a row kept where it was made no iteration: no slip turned back there
+                hints = None if hints is None else tuple(hint & ~worse[:, None] for hint in hints)
+            objective.update_curvature_hints(previous, x, hints)
             stagnation, stuck = stagnation.update(active, energy, x, new_energy, residual, search.allowance)
             energy = new_energy
             stalled = stalled | stuck
