@@ -118,10 +118,8 @@ class EnergyTerm(nn.Module):
     def batch_last_curvature_hint(
         self, start_corners: list[list[Tensor]], corners: list[list[Tensor]]
     ) -> Tensor | None:
-        """`curvature_hint` with the batch innermost, `[m, B]`, from the element corners' positions at
-        an iteration's start and end as `[i][b]` `[m, B]` (`energysim.objective.batch_last`), where
-        the class gives one; None otherwise. A compiled line-search trial computes it with its other
-        results (`energysim.objective.evaluation.trial`)."""
+        """`curvature_hint` with the batch innermost, `[m, B]`, from the corners `[i][b]` `[m, B]` at an
+        iteration's start and end, for a compiled line-search trial; None where the class has none."""
         return None
 
     def set_curvature_hint(self, hint: Tensor) -> None:

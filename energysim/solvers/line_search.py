@@ -117,9 +117,8 @@ class LineStep:
             measured it or was given it; NaN for entries it was not measured for, None where it
             was measured for none. A solver passes it to its next searches (`line_step`'s
             `noise`), which then measure only the entries still without one.
-        hints: the curvature hints of the iteration from the search's start to `x`
-            (`LineTrial.hints`), where every entry took the first trial and the trial gave them;
-            None otherwise.
+        hints: the curvature hints of the iteration from the search's start to `x` (`LineTrial.hints`)
+            where every entry took the first trial and the trial gave them; None otherwise.
     """
 
     step: Tensor
