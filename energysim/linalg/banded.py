@@ -226,9 +226,9 @@ def band_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> T
 
 def band_upper_positions(layout: LevelLayout, element_vertices: Tensor, dim: int) -> Tensor:
     """Where the upper entries of element Hessian blocks (`energysim.fem.hessian_entries.upper_entries`,
-    entry-major: entry p of element e at p·m + e, as the batch-last Hessian stacks them) land in one
-    matrix's band storage, shape `[P·m]`: each at its own place or its transpose's, whichever lies
-    in the stored lower triangle. Cached per layout and vertex tensor."""
+    element-major: entry p of element e at e·P + p, as the batch-last Hessian stacks them) land in
+    one matrix's band storage, shape `[m·P]`: each at its own place or its transpose's, whichever
+    lies in the stored lower triangle. Cached per layout and vertex tensor."""
 
     def build() -> Tensor:
         pairs = upper_entries(element_vertices.shape[1], dim)
@@ -237,7 +237,7 @@ def band_upper_positions(layout: LevelLayout, element_vertices: Tensor, dim: int
         position = layout.band_position[dof_indices(element_vertices, dim)]
         first, second = position[:, rows], position[:, columns]
         low, high = torch.minimum(first, second), torch.maximum(first, second)
-        return (low * (layout.half_bandwidth + 1) + (high - low)).T.reshape(-1)
+        return (low * (layout.half_bandwidth + 1) + (high - low)).reshape(-1)
 
     return _UPPER_POSITIONS.get((layout, element_vertices), dim, build)
 

@@ -73,9 +73,9 @@ def _scatter_corners(
 ) -> Tensor:
     # Σ over `forces` (each [i][b] `[m, B]`) added onto the DOF rows of `gradient` `[n·d, B]`
     corners = corner_dofs.shape[1]
-    total = torch.stack(
-        [torch.stack([sum(f[i][b] for f in forces) for b in range(corners)]) for i in range(dim)]
-    )
+    # one stack in `corner_dofs`' order: from a stack of stacks, the compiled code copied each inner
+    # stack into the outer one
+    total = torch.stack([sum(f[i][b] for f in forces) for i in range(dim) for b in range(corners)])
     return gradient.index_add(0, corner_dofs.reshape(-1), total.reshape(-1, gradient.shape[1]))
 
 
@@ -248,7 +248,8 @@ def hessian_entries_batch_last(
 ) -> Tensor:
     # `energysim.objective.compiled`'s `_hessian_entries` for a storage that keeps one triangle
     # (band storage), batch-last: each group's summed upper entries (`batch_last_hessian_entries`,
-    # `[P, m, B]`) land at the group's positions (`band_upper_positions`) of a `[length + 1, B]`
+    # stacked element-major, `[m, P, B]`, so that each element's entries are written to one stretch
+    # of memory) land at the group's positions (`band_upper_positions`) of a `[length + 1, B]`
     # storage (a copy of `start` where given; float32 with `single`, a `relative` group evaluated
     # in float32 at positions relative to each element's first corner), the per-vertex diagonals at
     # `diagonal_positions`; returned whole and batch-last: the band solve reads it through a
@@ -272,5 +273,5 @@ def hessian_entries_batch_last(
         for member in members[1:]:
             more = terms[member].batch_last_hessian_entries(corners, read)
             entries = [first + second for first, second in zip(entries, more, strict=True)]
-        flat.index_add_(0, positions, torch.stack(entries).reshape(-1, batch).to(dtype))
+        flat.index_add_(0, positions, torch.stack(entries, dim=1).reshape(-1, batch).to(dtype))
     return flat
