@@ -58,7 +58,9 @@ def stable_neo_hookean_hessian_entries(
     dim = len(corners)
     F = deformation_gradient_entries(corners, shape_gradient_t)
     mu_smith, lam_smith, alpha = smith_parameters(mu, lam)
-    stretch_excess, volume_excess, _ = invariant_excess_entries(F)
+    stretch_excess, volume_excess = (
+        _per_element(value, rest_volume) for value in invariant_excess_entries(F)[:2]
+    )
     inverse = 1.0 / (stretch_excess + 4.0)  # 1/(I_C + 1)
     volume = rest_volume[:, None]
     identity_weight = volume * mu_smith * (1.0 - inverse)
@@ -82,6 +84,15 @@ def stable_neo_hookean_hessian_entries(
             value = value + det_blocks[b, c][i][k]
         entries.append(value)
     return entries
+
+
+def _per_element(values: Tensor, rest_volume: Tensor) -> Tensor:
+    # `values` `[m, B]` times one read per element that is 1 (V `[m]` is positive and finite).
+    # Compiled batch-last, an intermediate computed from stored intermediates alone (the invariants,
+    # from F) runs as a flat loop over m·B numbers that does not fuse with the loops over (element,
+    # batch) before and after it, which must then store what it and they read; with one read per
+    # element it joins them, and the block's arithmetic is one loop (docs/energies.md).
+    return values * (rest_volume[:, None] * 0.0 + 1.0)
 
 
 def _det_hessian_blocks(
