@@ -13,8 +13,10 @@ compilation happens in the untimed warm-up steps, so give it a few (`--warmup 10
 machine). `--integrator leapfrog` steps the env's explicit physics (`CreatureEnvConfig`: substeps
 from the Courant limit, the ground as an inelastic contact with Coulomb friction), `--integrator
 both` the implicit and the explicit env of the same body model side by side, with their ratio;
-their timed calls are taken in four turns (a slow moment of a shared machine then falls on both
-alike), each turn after one untimed call (whose caches the other env's data had filled).
+their timed calls are taken in `--turns` turns (a slow moment of a shared machine then falls on both
+alike), each turn after one untimed call (whose caches the other env's data had filled). The ratio
+of their rates comes with its range over the turns (each turn's ratio of median step times), the
+error of the ratio that the machine's drift leaves.
 Beside each implicit run: the largest velocity residual a solve left (m/s).
 
 Every speed comes with an error: the suggested open-loop gait (the creature's sine, through the
@@ -32,6 +34,8 @@ Run:  python scripts/bench_env.py                                    # worm and 
           --out docs/benchmarks/bench_env_leapfrog                   # the explicit env
       python scripts/bench_env.py --creatures worm --batch-sizes 64 --integrator both --compile \
           --warmup 10 --steps 20 --out docs/benchmarks/bench_env_both    # both envs side by side
+      python scripts/bench_env.py --creatures worm --batch-sizes 64 --integrator both --compile \
+          --warmup 10 --steps 256 --turns 16 --out docs/benchmarks/bench_env_both_256_steps   # longer
       python scripts/bench_env.py --creatures worm --batch-sizes 64 --compile --warmup 10 \
           --steps 20 --solver-tol 1e-2 --out docs/benchmarks/bench_env_tol1e-2   # a looser tolerance
       python scripts/bench_env.py --integrator leapfrog --compile --warmup 3 --steps 40 \
@@ -65,7 +69,7 @@ from energysim.envs.core import CreatureSimulation
 TARGET_STEPS_PER_SECOND = 1000.0
 # the implicit env's documented tolerance, m/s
 SOLVER_TOL = CreatureEnvConfig.solver_tol
-# turns the envs of one creature and B take at their timed calls (`bench`)
+# turns the envs of one creature and B take at their timed calls (`bench`), by default
 TURNS = 4
 
 
@@ -95,6 +99,8 @@ class Row:
     solver_residual: float = float("nan")
     solver_budget: int | None = None
     solver_tol: float = SOLVER_TOL
+    # the median ms per call in each turn the envs took, space-separated (`bench`)
+    turn_ms_per_call: str = ""
 
 
 @dataclass
@@ -104,6 +110,7 @@ class Timed:
     env: CreatureVectorEnv
     integrator: str
     walls: list[float] = field(default_factory=list)
+    turn_walls: list[list[float]] = field(default_factory=list)
     iterations: list[float] = field(default_factory=list)
     residuals: list[float] = field(default_factory=lambda: [0.0])
     failures: int = 0
@@ -122,9 +129,10 @@ def bench(
     dtype: str = "float64",
     solver_budget: int | None = None,
     solver_tol: float = SOLVER_TOL,
+    turns: int = TURNS,
 ) -> list[Row]:
     """Time `steps` calls of a batched env of `batch` creatures per integrator of `integrators`,
-    the envs taking `TURNS` turns, so that a slow moment of a shared machine falls on every env alike
+    the envs taking `turns` turns, so that a slow moment of a shared machine falls on every env alike
     (activation dynamics with time constant `activation_time_constant` in s, None: the env's
     default; compiled objective evaluations with `compile_objective`); one table row per env,
     without the gait's error (`gait_error`). `solver_budget`: the implicit env's fixed Newton budget
@@ -153,13 +161,15 @@ def bench(
     # the envs take turns in blocks, each block after one untimed call: an env's first call after
     # another's finds the caches full of the other's data (the explicit env's step was 15-20 % slower
     # right after an implicit one's than in a run of its own)
-    rounds = min(TURNS, steps) if len(timed) > 1 else 1
+    rounds = min(turns, steps) if len(timed) > 1 else 1
     for turn in range(rounds):
         for run in timed:
             if len(timed) > 1:
                 run.env.step(run.env.action_space.sample())
+            start = len(run.walls)
             for _ in range(steps // rounds + (turn < steps % rounds)):
                 _time_step(run, device, profiler)
+            run.turn_walls.append(run.walls[start:])
     if profiler is not None:
         text = io.StringIO()
         pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
@@ -215,6 +225,7 @@ def _row(run: Timed, creature: str, batch: int, device: str, steps: int, compile
         solver_residual=max(run.residuals) if run.integrator != "leapfrog" else float("nan"),
         solver_budget=env.config.solver_budget,
         solver_tol=env.config.solver_tol,
+        turn_ms_per_call=" ".join(f"{1e3 * statistics.median(walls):.3f}" for walls in run.turn_walls),
     )
 
 
@@ -330,11 +341,11 @@ def markdown(rows: list[Row], threads: int) -> str:
         f"Batched creature environments (`CreatureVectorEnv`), frame_skip 1, h = 1/60 s, {rows[0].dtype}, "
         f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
         f"{dynamics}, {threads} thread(s), device {rows[0].device}. "
-        "Env steps/s = B / median wall time of one `step` call; the range is from the calls' interquartile "
-        "range; the envs of one creature and B took turns, four each. Work: leapfrog substeps "
-        "per physics step, or Newton iterations per physics step (the mean over the entries of each "
-        "one's own count; the batched solve runs as many as its slowest entry) with the largest "
-        "velocity residual a solve left. " + gait_caption(rows[0].gait_seconds),
+        "Env steps/s = B / median wall time of one `step` call; the range is from the calls' "
+        f"interquartile range; the envs of one creature and B took turns, {_turn_count(rows)} each. "
+        "Work: leapfrog substeps per physics step, or Newton iterations per physics step (the mean over "
+        "the entries of each one's own count; the batched solve runs as many as its slowest entry) "
+        "with the largest velocity residual a solve left. " + gait_caption(rows[0].gait_seconds),
         "",
     ]
     header = ["creature", "B", "integrator", "calls", "median ms/call (IQR)", "env steps/s (IQR range)",
@@ -351,8 +362,25 @@ def markdown(rows: list[Row], threads: int) -> str:
     explicit = {(r.creature, r.batch): r for r in rows if r.integrator == "leapfrog"}
     for key in implicit.keys() & explicit.keys():
         ratio = explicit[key].env_steps_per_second / implicit[key].env_steps_per_second
-        lines.append(f"\n{key[0]}, B = {key[1]}: the explicit env is {ratio:.1f}× the implicit env's rate.")
+        low, high = turn_ratio_range(implicit[key], explicit[key])
+        lines.append(
+            f"\n{key[0]}, B = {key[1]}: the explicit env is {ratio:.2f}× the implicit env's rate "
+            f"({low:.2f}–{high:.2f}× turn by turn)."
+        )
     return "\n".join(lines) + "\n"
+
+
+def _turn_count(rows: list[Row]) -> int:
+    # the turns the envs took (1 where one env ran alone)
+    return len(rows[0].turn_ms_per_call.split()) or 1
+
+
+def turn_ratio_range(implicit: Row, explicit: Row) -> tuple[float, float]:
+    """The smallest and largest ratio of the implicit env's median step time to the explicit env's
+    over the turns they took (`bench`): how far the machine's drift moves the ratio of their rates."""
+    slow, fast = implicit.turn_ms_per_call.split(), explicit.turn_ms_per_call.split()
+    ratios = [float(one) / float(other) for one, other in zip(slow, fast, strict=True)]
+    return min(ratios), max(ratios)
 
 
 def plot(rows: list[Row], path: Path) -> None:
@@ -420,13 +448,16 @@ def main(argv: list[str] | None = None) -> list[Row]:
         default=SOLVER_TOL,
         help=f"the implicit env's velocity-residual tolerance, m/s (default {SOLVER_TOL:g})",
     )
+    parser.add_argument(
+        "--turns", type=int, default=TURNS, help=f"turns the envs take with --integrator both ({TURNS})"
+    )
     parser.add_argument("--no-gait", action="store_true", help="skip the gait's error (the slow part)")
     parser.add_argument(
         "--gait-seconds", type=float, default=GAIT_SECONDS, help="simulated time of the gait's error run, s"
     )
     args = parser.parse_args(argv)
-    if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1:
-        parser.error("batch sizes, --steps and --threads must be >= 1 and --warmup >= 0")
+    if min(args.batch_sizes) < 1 or args.steps < 1 or args.warmup < 0 or args.threads < 1 or args.turns < 1:
+        parser.error("batch sizes, --steps, --turns and --threads must be >= 1 and --warmup >= 0")
     tau = args.activation_time_constant
     if tau is not None and not (np.isfinite(tau) and tau >= 0):
         parser.error(f"--activation-time-constant must be a finite number >= 0, got {tau}")
@@ -453,6 +484,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
             args.dtype,
             args.solver_budget,
             args.solver_tol,
+            args.turns,
         )
     ]
     if not args.no_gait:

@@ -573,16 +573,27 @@ def test_bench_env_times_the_leapfrog_env_with_its_gait_error(tmp_path: Path) ->
 def test_bench_env_sets_both_envs_side_by_side_with_the_residual(tmp_path: Path) -> None:
     bench_env = bench_env_script()
     rows = bench_env.main(
-        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "1", "--warmup", "0", "--no-plot"]
-        + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "both", "--no-gait"]
+        ["--creatures", "crawler2d", "--batch-sizes", "2", "--steps", "3", "--warmup", "0", "--no-plot"]
+        + ["--device", "cpu", "--out", str(tmp_path), "--integrator", "both", "--no-gait", "--turns", "2"]
     )
     assert [row.integrator for row in rows] == ["implicit_euler", "leapfrog"]
     implicit, explicit = rows
     # the implicit solves reached the env's tolerance, and said so; the explicit step solves nothing
     assert 0 < implicit.solver_residual <= 1e-4 and np.isnan(explicit.solver_residual)
     ratio = explicit.env_steps_per_second / implicit.env_steps_per_second
+    # two turns (two calls, then one), each turn's median step time recorded per env
+    slow, fast = ([float(ms) for ms in row.turn_ms_per_call.split()] for row in rows)
+    assert len(slow) == len(fast) == 2
+    turn_ratios = sorted(s / f for s, f in zip(slow, fast, strict=True))
+    assert bench_env.turn_ratio_range(implicit, explicit) == pytest.approx(turn_ratios, rel=1e-12)
     table = (tmp_path / "bench_env.md").read_text()
-    assert f"the explicit env is {ratio:.1f}× the implicit env's rate" in table
+    low, high = turn_ratios
+    expected = f"the explicit env is {ratio:.2f}× the implicit env's rate ({low:.2f}–{high:.2f}× turn by"
+    assert expected in table
+    assert "took turns, 2 each" in table
+    assert "turn_ms_per_call" in (tmp_path / "bench_env.csv").read_text().splitlines()[0]
+    with pytest.raises(SystemExit):
+        bench_env.main(["--turns", "0", "--no-plot", "--out", str(tmp_path)])
 
 
 def test_bench_env_iterations_varies_one_thing_at_a_time(tmp_path: Path) -> None:
