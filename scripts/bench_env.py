@@ -342,10 +342,10 @@ def markdown(rows: list[Row], threads: int) -> str:
         f"one body model (η = 30 Pa·s, μ = 0.8), {physics}, {evaluations}, random actions (seed 0), "
         f"{dynamics}, {threads} thread(s), device {rows[0].device}. "
         "Env steps/s = B / median wall time of one `step` call; the range is from the calls' "
-        f"interquartile range; the envs of one creature and B took turns, {_turn_count(rows)} each. "
-        "Work: leapfrog substeps per physics step, or Newton iterations per physics step (the mean over "
-        "the entries of each one's own count; the batched solve runs as many as its slowest entry) "
-        "with the largest velocity residual a solve left. " + gait_caption(rows[0].gait_seconds),
+        f"interquartile range{_turns_text(rows)}. Work: leapfrog substeps per physics step, or Newton "
+        "iterations per physics step (the mean over the entries of each one's own count; the batched "
+        "solve runs as many as its slowest entry) with the largest velocity residual a solve left. "
+        + gait_caption(rows[0].gait_seconds),
         "",
     ]
     header = ["creature", "B", "integrator", "calls", "median ms/call (IQR)", "env steps/s (IQR range)",
@@ -370,9 +370,11 @@ def markdown(rows: list[Row], threads: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _turn_count(rows: list[Row]) -> int:
-    # the turns the envs took (1 where one env ran alone)
-    return len(rows[0].turn_ms_per_call.split()) or 1
+def _turns_text(rows: list[Row]) -> str:
+    # how the envs of one creature and B shared the machine, where more than one ran
+    if len({r.integrator for r in rows}) < 2:
+        return ""
+    return f"; the envs of one creature and B took turns, {len(rows[0].turn_ms_per_call.split())} each"
 
 
 def turn_ratio_range(implicit: Row, explicit: Row) -> tuple[float, float]:

@@ -544,6 +544,7 @@ def test_bench_env_writes_its_table(tmp_path: Path) -> None:
     assert "| crawler2d | 2 |" in table and (tmp_path / "bench_env.csv").exists()
     # without the gait, the caption says so and its cells stay blank rather than "nan"
     assert "The gait was not walked" in table and "nan" not in table
+    assert "took turns" not in table  # one env ran: nothing to take turns with
     # the env's body model by default
     assert "τ = 0.05 s" in table and rows[0].activation_time_constant == 0.05
     # the activation time constant reaches the env and is recorded in both files
