@@ -360,7 +360,7 @@ def markdown(rows: list[Row], threads: int) -> str:
     ])
     implicit = {(r.creature, r.batch): r for r in rows if r.integrator != "leapfrog"}
     explicit = {(r.creature, r.batch): r for r in rows if r.integrator == "leapfrog"}
-    for key in implicit.keys() & explicit.keys():
+    for key in (key for key in implicit if key in explicit):  # in the table's order
         ratio = explicit[key].env_steps_per_second / implicit[key].env_steps_per_second
         low, high = turn_ratio_range(implicit[key], explicit[key])
         lines.append(
