@@ -57,3 +57,15 @@ def test_the_settings_are_restored_when_the_call_raises():
     except RuntimeError:
         pass
     assert config.recompile_limit == before
+
+
+def test_nested_scopes_hold_the_settings_until_the_outermost_closes():
+    # a step holds the settings once around all its compiled calls, each in a scope of its own
+    config = torch._dynamo.config
+    before = (config.recompile_limit, config.specialize_float)
+    with package_compile_settings():
+        with package_compile_settings():
+            assert config.recompile_limit == RECOMPILE_LIMIT
+        assert config.recompile_limit == RECOMPILE_LIMIT
+        assert config.specialize_float
+    assert (config.recompile_limit, config.specialize_float) == before

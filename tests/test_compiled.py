@@ -70,14 +70,18 @@ def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissibl
     energy, gradient = objective.energy_and_gradient(x)
     direction = -1e-3 * gradient / gradient.abs().amax()
     direction[:, :, 1] -= 0.02  # downwards, into the ground: the step limit binds
-    eager = objective.trial(x, direction, gradient)
+    judging = (_judge, (energy,))
+    eager = objective.trial(x, direction, gradient, *judging)
     assert bool((eager.step < 1).all())
     assert torch.equal(eager.step, objective.max_step(x, direction))
     objective.compiled = True
-    fast = objective.trial(x, direction, gradient)
+    fast = objective.trial(x, direction, gradient, *judging)
     for name in ("step", "x", "energy", "gradient", "slope", "trial_slope", "residual"):
         value, reference = getattr(fast, name), getattr(eager, name)
         assert torch.allclose(value, reference, rtol=1e-10, atol=1e-9 * float(reference.abs().max())), name
+    # the caller's judgement of the trial, evaluated in the same call: the energy's change there
+    assert torch.allclose(fast.verdict[0], fast.energy - energy, rtol=1e-9, atol=0)
+    assert torch.allclose(eager.verdict[0], eager.energy - energy, rtol=1e-9, atol=0)
     # a batch evaluated batch-last also gives the friction's curvature hints of an iteration ending
     # at the trial, as the term itself marks them; eagerly and element-major, the solver asks the term
     assert eager.hints is None
@@ -90,7 +94,12 @@ def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissibl
     inside = x.clone()
     inside[1, 3, 1] = -1e-3  # one vertex below the ground, in the second entry only
     with pytest.raises(ValueError, match=r"not admissible: vertices \[3\]"):
-        objective.trial(inside, direction, gradient)
+        objective.trial(inside, direction, gradient, *judging)
+
+
+def _judge(step, slope, trial_energy, trial_slope, energy):
+    # a line search's judgement of a trial (`Objective.trial`'s `judge`): here, E's change
+    return (trial_energy - energy,)
 
 
 def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly():
@@ -224,7 +233,8 @@ def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(ba
         reference = _without_corner(dense.reshape(batch, -1)[:, layout.band_entries])
         assert torch.allclose(_without_corner(bands), reference, rtol=0, atol=tolerance)
         assert torch.allclose(objective.dense_hessian(y), dense, rtol=0, atol=tolerance)
-    assert sorted(key[0] for key in objective._constant_hessians) == ["band", "dense"]
+    storages = [key[0] for key in objective._constant_hessians if key[0] in ("band", "dense", "levels")]
+    assert sorted(storages) == ["band", "dense"]  # one kept part per storage, whatever x
     # the factorisation may overwrite what it is given: the kept part is a copy's source, never returned
     bands.zero_()
     again = objective.band_hessian(x, layout)

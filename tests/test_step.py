@@ -189,9 +189,9 @@ def test_a_batch_drops_converged_entries_and_still_equals_its_entries_solved_alo
         rows.append(x.shape[0])
         return evaluate(self, x)
 
-    def counting_trial(self, x, direction, gradient):
+    def counting_trial(self, x, direction, gradient, *judging):
         rows.append(x.shape[0])
-        return line_trial(self, x, direction, gradient)
+        return line_trial(self, x, direction, gradient, *judging)
 
     # every gradient a solve takes, at a point or at a line search's first trial, counts its rows
     monkeypatch.setattr(es.Objective, "energy_and_gradient", counting)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from energysim.compile_settings import package_compile_settings
 from energysim.integrators.adjoint import differentiable_parameters
 from energysim.integrators.common import acceleration_of, check_action
 from energysim.integrators.explicit_step import explicit_step, stable_substeps
@@ -92,6 +93,19 @@ def step(
     Returns:
         the new state (same shape, device and dtype as `state`) and the solver's statistics.
     """
+    # the compiled calls' Dynamo settings made once for the whole step (`package_compile_settings`)
+    with package_compile_settings():
+        return _step(scene, state, action, solver, grad_mode, adjoint_rtol)
+
+
+def _step(
+    scene: Scene,
+    state: Tensor,
+    action: Tensor | None,
+    solver: Solver | None,
+    grad_mode: str,
+    adjoint_rtol: float,
+) -> StepResult:
     if grad_mode not in GRAD_MODES:
         raise ValueError(f"grad_mode must be one of {GRAD_MODES}, got {grad_mode!r}")
     x_prev, v_prev = scene.split_state(state)

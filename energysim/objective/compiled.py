@@ -282,10 +282,12 @@ def trial(
     x: Tensor,
     direction: Tensor,
     gradient: Tensor,
-) -> tuple[Tensor, ...] | None:
+    judge: Callable[..., tuple[Tensor, ...]],
+    judged_with: tuple,
+) -> tuple[object, ...] | None:
     """`Objective.trial`'s results (`evaluation.trial`) by one compiled function, or None."""
     arguments = (tuple(terms), anchor, action, free, residual_scale, x, direction, gradient)
-    return call("trial", *arguments, batch=x.shape[0])
+    return call("trial", *arguments, judge, judged_with, batch=x.shape[0])
 
 
 def cut_back(

@@ -111,7 +111,8 @@ def _entries(
         return tuple(evaluated), tuple(grouped)
 
     def entries(function: str, of: tuple[EnergyTerm, ...], start: Tensor | None) -> Tensor | None:
-        evaluated, grouped = arguments(of)
+        # built once per function and storage: an objective's terms are fixed for its life
+        evaluated, grouped = _kept(copies, ("arguments", function, key), lambda: arguments(of))
         arguments_of = (evaluated, action, x, grouped, diagonal, length, start, single)
         return call(function, *arguments_of, batch=x.shape[0])
 
@@ -130,6 +131,13 @@ def _entries(
     return entries(name, varying, start)
 
 
+def _kept(cache: dict[object, object], key: object, build: Callable[[], object]) -> object:
+    # `cache[key]`, built by `build` where missing
+    if key not in cache:
+        cache[key] = build()
+    return cache[key]
+
+
 def _kept_copy(cache: dict[object, object], key: object) -> EnergyTerm | None:
     # the float32 copy of a term under `key` that the objective this one is rows of keeps (`PARENT`),
     # or None. A term without per-entry data is the same object in every subset of a solve (its
@@ -143,11 +151,16 @@ def _kept_copy(cache: dict[object, object], key: object) -> EnergyTerm | None:
     return None
 
 
-def _fixed_dofs(free: Tensor, dim: int) -> Tensor | None:
-    # the fixed DOFs `[n·d]` (DOF = vertex·d + axis) of the per-vertex `free` `[n]`; None if none is
-    if bool(free.all()):
-        return None
-    return (~free)[:, None].expand(free.shape[0], dim).reshape(-1)
+def _fixed_dofs(free: Tensor, dim: int, cache: dict[object, object] | None = None) -> Tensor | None:
+    # the fixed DOFs `[n·d]` (DOF = vertex·d + axis) of the per-vertex `free` `[n]`; None if none is.
+    # Kept in `cache` for this `free` tensor (an objective's, asked every Newton iteration)
+    kept = None if cache is None else cache.get("fixed")
+    if kept is not None and kept[0] is free and kept[1] == dim:
+        return kept[2]
+    fixed = None if bool(free.all()) else (~free)[:, None].expand(free.shape[0], dim).reshape(-1)
+    if cache is not None:
+        cache["fixed"] = (free, dim, fixed)
+    return fixed
 
 
 def dense_hessian(
@@ -217,7 +230,7 @@ def band_hessian(
     if flat is None:
         return None
     bands = flat.reshape(batch, n * dim, layout.half_bandwidth + 1)
-    fixed = _fixed_dofs(free, dim)
+    fixed = _fixed_dofs(free, dim, constant)
     return bands if fixed is None else eliminate_fixed_in_bands(bands, layout, fixed)
 
 

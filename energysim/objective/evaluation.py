@@ -8,7 +8,7 @@ branch); the caller checks them (`Objective.max_step`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -94,12 +94,15 @@ def trial(
     x: Tensor,
     direction: Tensor,
     gradient: Tensor,
-) -> tuple[Tensor, ...]:
+    judge: Callable[..., tuple[Tensor, ...]],
+    judged_with: tuple,
+) -> tuple[object, ...]:
     """A line search's first trial from `x` along `direction` (`gradient` = ∇E(x)): the unchecked
     step limit `[B]`, where it lands `[B, n, d]`, E `[B]` and ∇E `[B, n, d]` there, the slopes of E
-    along `direction` at both ends `[B]`, the velocity residual there `[B]`, and where the element
+    along `direction` at both ends `[B]`, the velocity residual there `[B]`, where the element
     terms are evaluated batch-last, the curvature hints of an iteration from `x` to there
-    (`batch_last.curvature_hints`; None otherwise) (`LineTrial`)."""
+    (`batch_last.curvature_hints`; None otherwise), and the search's verdict on the trial,
+    `judge(limit, slope, E there, slope there, *judged_with)` (`LineTrial`)."""
     limit = step_limit(terms, x, direction)
     trial_x = x + limit[:, None, None] * direction
     energy, trial_gradient = energy_and_gradient(terms, anchor, action, free, trial_x)
@@ -108,7 +111,8 @@ def trial(
     residual = (trial_gradient * residual_scale[:, None]).abs().amax(dim=(-1, -2))
     batched = batch_last.evaluates_batch_last(terms, x)
     hints = batch_last.curvature_hints(terms, x, trial_x) if batched else None
-    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual, hints
+    verdict = judge(limit, slope, energy, trial_slope, *judged_with)
+    return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual, hints, verdict
 
 
 def cut_back(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -13,6 +14,13 @@ from energysim.linalg.block_tridiagonal import LevelLayout
 from energysim.objective import compiled as compiled_functions
 from energysim.objective import compiled_hessian, evaluation
 from energysim.objective.derivatives import HessianOperator, element_groups, hessian_operator
+
+
+def _admissible(limits: Tensor) -> bool:
+    """Whether every step limit is finite (`max_step` gives NaN where a start is not admissible):
+    their sum is, as the limits lie in [0, 1]. One eager operation where `isfinite(...).all()` is
+    five, a few times per Newton iteration."""
+    return math.isfinite(float(limits.sum()))
 
 
 @dataclass(frozen=True)
@@ -28,6 +36,7 @@ class LineTrial:
         hints: the curvature hints of an iteration that ends at `x`, one per term that declares
             them, in the terms' order (`Objective.update_curvature_hints`), where the evaluation
             gave them (a compiled batch's); None otherwise.
+        verdict: what the caller's `judge` made of the trial (`Objective.trial`).
     """
 
     step: Tensor
@@ -38,6 +47,7 @@ class LineTrial:
     trial_slope: Tensor
     residual: Tensor
     hints: tuple[Tensor, ...] | None = None
+    verdict: tuple[Tensor, ...] | None = None
 
 
 @dataclass
@@ -76,6 +86,7 @@ class Objective:
     # the Hessian part of the terms with a constant Hessian, per storage, and the terms' float32
     # copies (`compiled_hessian`)
     _constant_hessians: dict[object, object] = field(default_factory=dict, init=False, repr=False)
+    _element_groups: list[Tensor] | None = field(default=None, init=False, repr=False)
 
     def _compiles(self, *, hessian: bool = False) -> bool:
         if not self.compiled:
@@ -146,34 +157,51 @@ class Objective:
             ValueError: `x` is not admissible for some term (that term's `max_step` says why).
         """
         limit = compiled_functions.step_limit(self.terms, x, dx)
-        if not bool(torch.isfinite(limit).all()):
+        if not _admissible(limit):
             for term in self.terms:
                 term.max_step(x, dx)  # the term where x is not admissible raises
         return limit
 
-    def trial(self, x: Tensor, direction: Tensor, gradient: Tensor) -> LineTrial:
+    def trial(
+        self,
+        x: Tensor,
+        direction: Tensor,
+        gradient: Tensor,
+        judge: Callable[..., tuple[Tensor, ...]],
+        judged_with: tuple,
+    ) -> LineTrial:
         """The first trial of a line search from `x` along `direction`: the largest admissible step
         (`max_step`), and the energy, gradient and residual where it lands, with the slopes of E along
         `direction` at both ends (`gradient` is ∇E(x)). One compiled call where `compiled` (a line
         search's bookkeeping costs as much as its evaluation on a small body, eagerly).
 
+        `judge`: the search's test of the trial, `judge(step, slope, E there, slope there,
+        *judged_with)`, a module-level function of tensors evaluated in the same call
+        (`LineTrial.verdict`): in the compiled one where the objective compiles, instead of some
+        fifty small eager operations a search. The compiled call is guarded on `judge` and on the
+        structure of `judged_with`: keep both the same from call to call (torch 2.13's Dynamo fails
+        on a recompilation whose `judged_with` lost a tensor, and the objective then evaluates its
+        trials eagerly).
+
         Raises:
             ValueError: `x` is not admissible for some term (from `max_step`).
         """
+        judging = (judge, judged_with)
         if self._compiles():
             result = compiled_functions.trial(
-                self.terms, self.anchor, self.action, self.free, self.residual_scale, x, direction, gradient
+                self.terms, self.anchor, self.action, self.free, self.residual_scale, x, direction, gradient,
+                *judging,
             )
             if result is not None:
                 self.grad_evals += 1
                 trial = LineTrial(*result)
-                if not bool(torch.isfinite(trial.step).all()):
+                if not _admissible(trial.step):
                     self.max_step(x, direction)  # raises where x is not admissible
                 return trial
         self.grad_evals += 1
         arguments = (self.terms, self.anchor, self.action, self.free, self.residual_scale)
-        trial = LineTrial(*evaluation.trial(*arguments, x, direction, gradient))
-        if not bool(torch.isfinite(trial.step).all()):
+        trial = LineTrial(*evaluation.trial(*arguments, x, direction, gradient, *judging))
+        if not _admissible(trial.step):
             self.max_step(x, direction)  # raises where x is not admissible
         return trial
 
@@ -190,21 +218,24 @@ class Objective:
             result = compiled_functions.cut_back(self.terms, self.anchor, self.action, origin, targets)
             if result is not None:
                 cuts, energies, limits = result
-                if not bool(torch.isfinite(limits).all()):
+                if not _admissible(limits):
                     self.max_step(origin, targets[0] - origin)  # raises where origin is not admissible
                 return cuts, energies
         with torch.no_grad():
             arguments = (self.terms, self.anchor, self.action)
             cuts, energies, limits = evaluation.cut_back(*arguments, origin, targets)
-        if not bool(torch.isfinite(limits).all()):
+        if not _admissible(limits):
             self.max_step(origin, targets[0] - origin)  # raises where origin is not admissible
         return cuts, energies
 
     def element_groups(self) -> list[Tensor]:
         """The vertex indices `[m, k]` of each group of nonlinear element terms on the same elements
         (`derivatives.element_groups`), in the order `hessian` assembles their summed blocks (what
-        the sparsity pattern is built from)."""
-        return [self.terms[group[0]].element_vertices for group in element_groups(self.terms)]
+        the sparsity pattern is built from). Asked once per objective, as `_compiles`."""
+        if self._element_groups is None:
+            groups = element_groups(self.terms)
+            self._element_groups = [self.terms[group[0]].element_vertices for group in groups]
+        return list(self._element_groups)
 
     def dense_hessian(self, x: Tensor) -> Tensor | None:
         """∇²E(x) as dense `[B, n·d, n·d]` matrices by the compiled function, fixed DOFs eliminated;

@@ -13,9 +13,9 @@ from torch import Tensor
 from energysim.objective.objective import Objective
 
 
-def _rounding(x: Tensor, energy: Tensor) -> Tensor:
+def _rounding(energy: Tensor) -> Tensor:
     # a decrease within a few ulps of |E| counts as no increase
-    return 64 * torch.finfo(x.dtype).eps * energy.abs()
+    return 64 * torch.finfo(energy.dtype).eps * energy.abs()
 
 
 # Perturbed evaluations `energy_noise` takes. With E(x) itself that is 5 values, whose spread is
@@ -83,7 +83,7 @@ def _noise_floor(objective: Objective, x: Tensor, energy: Tensor, noise: Tensor 
     entry's is not known), whichever is larger."""
     if noise is None:
         noise = _noise_allowance(objective, x, energy)
-    return torch.fmax(_rounding(x, energy), noise)
+    return torch.fmax(_rounding(energy), noise)
 
 
 def _noise_allowance(
@@ -155,6 +155,62 @@ def _slope_decrease(slope: Tensor, trial_slope: Tensor, constant: float) -> Tens
     return 0.5 * (slope + trial_slope) <= constant * slope
 
 
+def _armijo(
+    energy: Tensor,
+    slope: Tensor,
+    rounding: Tensor,
+    constant: float,
+    trial: Tensor,
+    step: Tensor,
+    trial_slope: Tensor,
+) -> tuple[Tensor, Tensor]:
+    # Armijo's test, and where it passes only thanks to the allowance for rounding (E did not fall
+    # as it must). Where the predicted decrease is above the rounding, the energy judges the step,
+    # and a trial within the allowance passes only where E still falls at it: the rounding must not
+    # let through a step past the minimum along the direction (twice the way to it leaves E where
+    # it was, and a solve that takes such steps makes no progress). (`_sufficient_decrease` without
+    # and with the allowance, sharing their operations.)
+    bound = energy + constant * step * slope
+    finite = torch.isfinite(trial)
+    strict = finite & (trial <= bound)
+    within = finite & (trial <= bound + rounding) & ~strict
+    by_energy = -slope * step > rounding
+    return strict | (within & (~by_energy | (trial_slope <= 0))), within
+
+
+def _overshot(
+    slope: Tensor,
+    trial_slope: Tensor,
+    unjudged: Tensor,
+    slope_decrease: Tensor,
+    decrease: Tensor,
+    within: Tensor,
+) -> Tensor:
+    # the entries whose trial went past the minimum along the direction: refused by the trapezoid
+    # where the energy cannot judge, or passed by the energy on the allowance alone
+    beyond = ~unjudged & ~decrease & within
+    return ((unjudged & ~slope_decrease) | beyond) & (slope < 0) & (trial_slope > slope)
+
+
+def _first_verdict(
+    step: Tensor, slope: Tensor, trial_energy: Tensor, trial_slope: Tensor, energy: Tensor, constant: float
+) -> tuple[Tensor, ...]:
+    # `line_step`'s first judgement of its trial, evaluated within the trial's compiled call
+    # (`Objective.trial`'s `judge`): whether it settles the search (every entry takes the trial as
+    # it is: none refuses it, none needs the noise measured, none overshot), `LineStep.unjudged`
+    # for that case, and what the search goes on from where it does not: the allowance, the
+    # entries the energy cannot judge, the trapezoid's and Armijo's verdicts, and the doubtful ones
+    rounding = _rounding(energy)
+    unjudged = -slope * step <= rounding
+    slope_decrease = _slope_decrease(slope, trial_slope, constant)
+    decrease, within = _armijo(energy, slope, rounding, constant, trial_energy, step, trial_slope)
+    doubtful = ~decrease & _noise_may_matter(energy, slope, step, slope_decrease)
+    overshot = _overshot(slope, trial_slope, unjudged, slope_decrease, decrease, within)
+    settled = ~(doubtful | overshot).any() & (unjudged | decrease).all()
+    taken_unjudged = unjudged & ~(decrease & slope_decrease)
+    return settled, taken_unjudged, rounding, unjudged, slope_decrease, decrease, within, doubtful
+
+
 def line_step(
     objective: Objective,
     x: Tensor,
@@ -219,38 +275,25 @@ def line_step(
             measured_noise[0] = known
         return _noise_floor(objective, x, energy, known)
 
-    first = objective.trial(x, direction, gradient)
+    first = objective.trial(x, direction, gradient, _first_verdict, (energy, sufficient_decrease))
     initial, trial_x, trial_energy, trial_gradient = first.step, first.x, first.energy, first.gradient
     slope, trial_slope, trial_residual = first.slope, first.trial_slope, first.residual
     hints = first.hints
-    rounding = _rounding(x, energy)
+    settled, taken_unjudged, rounding, unjudged, slope_decrease, decrease, within, doubtful = first.verdict
+    if bool(settled):  # every entry takes its first trial: the common case near a minimum
+        found = (trial_energy, trial_gradient, trial_residual)
+        return LineStep(initial, trial_x, *found, taken_unjudged, rounding, measured_noise[0], hints)
     measured = False
 
     def armijo(trial: Tensor, step: Tensor, trial_slope: Tensor) -> tuple[Tensor, Tensor]:
-        # Armijo's test, and where it passes only thanks to the allowance for rounding (E did not
-        # fall as it must). Where the predicted decrease is above the rounding, the energy judges
-        # the step, and a trial within the allowance passes only where E still falls at it: the
-        # rounding must not let through a step past the minimum along the direction (twice the way
-        # to it leaves E where it was, and a solve that takes such steps makes no progress).
-        # (`_sufficient_decrease` without and with the allowance, sharing their operations.)
-        bound = energy + sufficient_decrease * step * slope
-        finite = torch.isfinite(trial)
-        strict = finite & (trial <= bound)
-        within = finite & (trial <= bound + rounding) & ~strict
-        by_energy = -slope * step > rounding
-        return strict | (within & (~by_energy | (trial_slope <= 0))), within
+        return _armijo(energy, slope, rounding, sufficient_decrease, trial, step, trial_slope)
 
-    unjudged = -slope * initial <= rounding
-    slope_decrease = _slope_decrease(slope, trial_slope, sufficient_decrease)
-    decrease, within = armijo(trial_energy, initial, trial_slope)
-    doubtful = ~decrease & _noise_may_matter(energy, slope, initial, slope_decrease)
     if bool(doubtful.any()):
         # the trial may have failed on rounding alone; only now is the noise worth its evaluations
         rounding, measured = noise_floor(doubtful), True
         unjudged = -slope * initial <= rounding
         decrease, within = armijo(trial_energy, initial, trial_slope)
-    beyond = ~unjudged & ~decrease & within
-    overshot = ((unjudged & ~slope_decrease) | beyond) & (slope < 0) & (trial_slope > slope)
+    overshot = _overshot(slope, trial_slope, unjudged, slope_decrease, decrease, within)
     if bool(overshot.any()):
         # the minimiser of the quadratic through φ'(0) and φ'(t): below t/2 where the trapezoid
         # refused t, below t where φ'(t) > 0, so inside the admissible segment
