@@ -18,7 +18,7 @@ import pytest
 import torch
 
 import energysim as es
-from energysim.solvers.line_search import NOISE_ALLOWANCE, energy_noise
+from energysim.solvers.energy_rounding import NOISE_ALLOWANCE, energy_noise
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 if str(SCRIPTS) not in sys.path:
@@ -156,18 +156,18 @@ def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pyte
     # in their sixth solve when each search measured anew, each time for the whole batch
     import numpy as np
 
-    import energysim.solvers.line_search as line_search
+    import energysim.solvers.energy_rounding as energy_rounding
     from energysim.envs.config import CreatureEnvConfig
     from energysim.envs.core import CreatureSimulation
 
     measured = []
-    original = line_search.energy_noise
+    original = energy_rounding.energy_noise
 
     def counted(objective, x, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
         measured.append(x.shape[0])  # the entries measured
         return original(objective, x, *args, **kwargs)
 
-    monkeypatch.setattr(line_search, "energy_noise", counted)
+    monkeypatch.setattr(energy_rounding, "energy_noise", counted)
     simulation = CreatureSimulation(CreatureEnvConfig(creature="worm", solver_tol=1e-4))
     batch = 8
     state = simulation.reset([np.random.default_rng(i) for i in range(batch)])
@@ -321,7 +321,7 @@ def test_the_noise_measured_in_one_evaluation_of_repeated_rows_is_the_sample_by_
     from energysim.integrators.adjoint import step_terms
     from energysim.integrators.implicit_stage import rows_of
     from energysim.objective.objective import Objective
-    from energysim.solvers.line_search import NOISE_SAMPLES
+    from energysim.solvers.energy_rounding import NOISE_SAMPLES
 
     scene = load_creature("worm").scene(1 / 60, 0.8)
     x, v = scene.split_state(resting_state(scene).reshape(1, -1).expand(3, -1))
