@@ -13,6 +13,7 @@ import pytest
 import torch
 
 import energysim as es
+from energysim.objective import batch_last
 
 
 @pytest.fixture(autouse=True)
@@ -31,6 +32,12 @@ def random_rotation(dim: int, generator: torch.Generator | None = None) -> torch
     if torch.linalg.det(q) < 0:
         q[:, 0] = -q[:, 0]
     return q
+
+
+def lay_out_per_element(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Compiled CPU batches of every size laid out per element for the rest of the test, as a GPU lays
+    out small batches (`energysim.objective.batch_last.takes_batch_last`)."""
+    monkeypatch.setitem(batch_last.BATCH_LAST_MIN_BATCH, "cpu", 2**62)
 
 
 def small_box(dim: int, cells: int = 2) -> es.SimplexMesh:

@@ -7,7 +7,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import small_box
+from conftest import lay_out_per_element, small_box
 
 import energysim as es
 from energysim.contact.friction import LaggedFriction
@@ -19,8 +19,7 @@ from energysim.integrators.common import state_energies
 from energysim.integrators.implicit_stage import rows_of
 from energysim.linalg import native
 from energysim.linalg.linear_solve import level_layout_of
-from energysim.objective import compiled, compiled_hessian
-from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
+from energysim.objective import batch_last, compiled, compiled_hessian
 from energysim.objective.objective import Objective
 
 
@@ -42,19 +41,29 @@ def _worm_objective(batch: int = 1, viscosity: bool = False) -> tuple[es.Scene, 
     return scene, objective, probe
 
 
-@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
-def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(batch: int):
-    # a batch of `BATCH_LAST_MIN_BATCH` (with the body's viscosity) evaluates its element terms
-    # batch-last (`batch_last_energy_and_forces`)
-    _, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
+# (batch, laid out batch-last): the CPU lays out every batch batch-last, a GPU small ones per element;
+# a batch of `HOST_CODE_MIN_BATCH` also runs C++ host code
+BATCH = compiled.HOST_CODE_MIN_BATCH
+LAYOUTS = [(2, False), (2, True), (BATCH, True)]
+
+
+@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
+def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(
+    batch: int, batch_last: bool, monkeypatch
+):
+    # a batch laid out batch-last (with the body's viscosity) evaluates its element terms batch-last
+    # (`batch_last_energy_and_forces`)
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
+    _, objective, x = _worm_objective(batch=batch, viscosity=batch_last)
     assert any(isinstance(term, LaggedFriction) for term in objective.terms)  # every kind of term
     energy, gradient = objective.energy_and_gradient(x)
     eager_energy = objective.energy(x)
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
     compiled_energy, compiled_gradient = objective.energy_and_gradient(x)
-    # a batch of `BATCH_LAST_MIN_BATCH` runs the function compiled with C++ host code
-    assert ("energy_and_gradient", "cpu", batch >= BATCH_LAST_MIN_BATCH) in compiled._COMPILED
+    # a batch of `HOST_CODE_MIN_BATCH` runs the function compiled with C++ host code
+    assert ("energy_and_gradient", "cpu", batch >= compiled.HOST_CODE_MIN_BATCH) in compiled._COMPILED
     assert torch.allclose(compiled_energy, energy, rtol=1e-12, atol=0)
     assert torch.allclose(objective.energy(x), eager_energy, rtol=1e-12, atol=0)
     assert torch.allclose(compiled_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))
@@ -62,10 +71,14 @@ def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(batch: 
     assert torch.allclose(compiled_dense, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
-@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
-def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start(batch: int):
+@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
+def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start(
+    batch: int, batch_last: bool, monkeypatch
+):
     # the first trial of a line search: CCD-limited step, energy, gradient, slopes and residual
-    _, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
+    _, objective, x = _worm_objective(batch=batch, viscosity=batch_last)
     x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
     energy, gradient = objective.energy_and_gradient(x)
     direction = -1e-3 * gradient / gradient.abs().amax()
@@ -85,7 +98,7 @@ def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissibl
     # a batch evaluated batch-last also gives the friction's curvature hints of an iteration ending
     # at the trial, as the term itself marks them; eagerly and element-major, the solver asks the term
     assert eager.hints is None
-    if batch < BATCH_LAST_MIN_BATCH:
+    if not batch_last:
         assert fast.hints is None
     else:
         hinting = [term for term in objective.terms if term.has_curvature_hint]
@@ -165,10 +178,12 @@ def test_the_compiled_dense_hessian_eliminates_fixed_dofs_like_the_assembly():
     assert torch.equal(objective.dense_hessian(x)[0, 0], torch.eye(scene.num_vertices * 3, dtype=x.dtype)[0])
 
 
-def _pinned_worm_objective(pinned: bool, batch: int = 2) -> tuple[es.Scene, Objective, torch.Tensor]:
-    """`_worm_objective` of `batch` entries, with vertices 0, 5 and 77 fixed where `pinned`; batches
-    of `BATCH_LAST_MIN_BATCH` or more with the body's viscosity."""
-    scene, objective, x = _worm_objective(batch=batch, viscosity=batch >= BATCH_LAST_MIN_BATCH)
+def _pinned_worm_objective(
+    pinned: bool, batch: int = 2, viscosity: bool = False
+) -> tuple[es.Scene, Objective, torch.Tensor]:
+    """`_worm_objective` of `batch` entries (with the body's `viscosity`), with vertices 0, 5 and 77
+    fixed where `pinned`."""
+    scene, objective, x = _worm_objective(batch=batch, viscosity=viscosity)
     if pinned:
         free = scene.free.clone()
         free[[0, 5, 77]] = False
@@ -183,12 +198,16 @@ def _without_corner(bands: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("pinned", [False, True])
-@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
-def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: bool, batch: int):
+@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
+def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(
+    pinned: bool, batch: int, batch_last: bool, monkeypatch
+):
     # assembled straight into band storage: the muscle and elastic blocks of the same elements are
     # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated.
-    # A batch of `BATCH_LAST_MIN_BATCH` takes the batch-last entries (`energysim.fem.hessian_entries`)
-    scene, objective, x = _pinned_worm_objective(pinned, batch)
+    # Batch-last, from the batch-last entries (`energysim.fem.hessian_entries`)
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
+    scene, objective, x = _pinned_worm_objective(pinned, batch, viscosity=batch_last)
     layout = level_layout_of(objective.element_groups(), x)
     dense = objective.hessian(x).dense(x)
     objective.compiled = True
@@ -210,11 +229,15 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(pinned: 
         assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
-@pytest.mark.parametrize("batch", [2, BATCH_LAST_MIN_BATCH])
-def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(batch: int):
+@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
+def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(
+    batch: int, batch_last: bool, monkeypatch
+):
     # the inertia and the lagged viscosity (`has_constant_hessian`) are assembled at the first call
     # and kept; later calls at other positions add the other terms to a copy: each result equals
     # the eager Hessian at its own x, in band and in dense storage
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
     _, objective, x = _worm_objective(batch=batch, viscosity=True)
     assert {type(term).__name__ for term in objective.terms if term.has_constant_hessian} == {
         "Inertia",
@@ -244,14 +267,19 @@ def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(ba
 
 
 @pytest.mark.parametrize(
-    ("batch", "rows"), [(BATCH_LAST_MIN_BATCH, [6, 1, 5]), (10, [0, 2, 3, 4, 5, 7, 8, 9])]
+    ("batch", "rows", "small_per_element"),
+    [(8, [6, 1, 5], True), (8, [6, 1, 5], False), (10, [0, 2, 3, 4, 5, 7, 8, 9], False)],
 )
 def test_a_subset_objective_slices_the_constant_hessian_part_from_its_parent(
-    batch: int, rows: list[int], monkeypatch
+    batch: int, rows: list[int], small_per_element: bool, monkeypatch
 ):
     # a solver's objective of the rows still iterating (`rows_of`) takes the inertia's and the lagged
-    # viscosity's part from its parent's storage, batch-last or not (3 rows: element-major; 8 of 10:
-    # batch-last), and its Hessian is the eager one of those rows at their positions
+    # viscosity's part from its parent's storage, and its Hessian is the eager one of those rows at
+    # their positions: from a batch-last parent into batch-last rows, and, with a GPU's rule for small
+    # batches (`small_per_element`), into 3 rows laid out per element
+    if small_per_element:
+        gpu_rule = batch_last.OTHER_DEVICES_BATCH_LAST_MIN_BATCH
+        monkeypatch.setitem(batch_last.BATCH_LAST_MIN_BATCH, "cpu", gpu_rule)
     scene, objective, x = _worm_objective(batch=batch, viscosity=True)
     layout = level_layout_of(objective.element_groups(), x)
     objective.compiled = True
@@ -405,11 +433,15 @@ def test_the_compiled_band_solve_shifts_an_indefinite_hessian_as_the_eager_one()
 
 
 @pytest.mark.skipif(native.library() is None, reason="no C band kernels on this machine")
-@pytest.mark.parametrize("batch", [4, BATCH_LAST_MIN_BATCH])
-def test_float32_band_factors_give_the_float64_newton_step_to_float32_accuracy(batch: int):
+@pytest.mark.parametrize(("batch", "batch_last"), [(4, False), (4, True), (BATCH, True)])
+def test_float32_band_factors_give_the_float64_newton_step_to_float32_accuracy(
+    batch: int, batch_last: bool, monkeypatch
+):
     # `factor_precision="single"`: the Hessian and its factorisation are float32 (the Hessian
-    # element-major, then batch-last); the shifted retries of the indefinite entries pick the same
-    # τ, and the steps stay downhill
+    # per element or batch-last); the shifted retries of the indefinite entries pick the same τ,
+    # and the steps stay downhill
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
     _, objective, x = _worm_objective(batch=batch)
     objective.compiled = True
     _, gradient = objective.energy_and_gradient(x)

@@ -14,7 +14,6 @@ from energysim.energies.derived import density_stiffness, density_stress
 from energysim.fem.materials import cofactor_matrix, lame_parameters, stable_neo_hookean_density
 from energysim.integrators.adjoint import step_terms
 from energysim.linalg.linear_solve import level_layout_of
-from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.derivatives import autograd_element_hessian, hessian_operator
 from energysim.objective.objective import Objective
 
@@ -22,6 +21,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 # every derived quantity is the same arithmetic as its reference, reordered: rounding only
 DERIVED_RTOL = 1e-10
+BATCH = 8  # a batch of bodies, compiled batch-last on the CPU
 
 
 def determinant(F: torch.Tensor) -> torch.Tensor:
@@ -315,7 +315,7 @@ def test_blocks_of_terms_on_the_same_elements_are_summed_into_one_group():
 
 
 def test_a_compiled_batch_evaluates_the_user_density_batch_last_as_eagerly():
-    # a compiled batch of `BATCH_LAST_MIN_BATCH` takes every element term batch-last: the user's
+    # a compiled CPU batch takes every element term batch-last: the user's
     # term through the defaults that transpose its derived element kernels. Static shapes: after
     # other scenes a compiled objective turns its sizes symbolic, which the derived kernels'
     # forward-mode derivatives cannot trace (they then fall back to eager derivation, with a warning)
@@ -324,7 +324,7 @@ def test_a_compiled_batch_evaluates_the_user_density_batch_last_as_eagerly():
     scene = _beam(VolumePreservation(1e5))
     scene.add(es.NeoHookean(1e5, 0.3))
     generator = torch.Generator().manual_seed(3)
-    noise = torch.randn(BATCH_LAST_MIN_BATCH, scene.num_vertices, 3, generator=generator, dtype=torch.float64)
+    noise = torch.randn(BATCH, scene.num_vertices, 3, generator=generator, dtype=torch.float64)
     x = scene.rest_positions[None] + 0.01 * noise
     terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, x, 0 * x, scene.free)
     objective = Objective(terms, scene.free, scene.dt / scene.vertex_mass)
@@ -340,7 +340,7 @@ def test_a_compiled_batch_evaluates_the_user_density_batch_last_as_eagerly():
     assert torch.allclose(fast_gradient, gradient, rtol=0, atol=1e-9 * float(gradient.abs().max()))
     size, width = bands.shape[1], bands.shape[2]
     read = torch.arange(size)[:, None] + torch.arange(width) < size  # the slots LAPACK reads
-    expected = dense.reshape(BATCH_LAST_MIN_BATCH, -1)[:, layout.band_entries]
+    expected = dense.reshape(BATCH, -1)[:, layout.band_entries]
     assert torch.allclose(bands[:, read], expected[:, read], rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
@@ -366,7 +366,7 @@ def test_a_user_density_declared_constant_is_assembled_once_and_still_exact():
     scene = _beam(QuadraticStrain())
     scene.add(es.NeoHookean(1e5, 0.3))
     generator = torch.Generator().manual_seed(4)
-    shape = (BATCH_LAST_MIN_BATCH, scene.num_vertices, 3)
+    shape = (BATCH, scene.num_vertices, 3)
     start = scene.rest_positions[None] + 0.01 * torch.randn(shape, generator=generator, dtype=torch.float64)
     positions = [start, start + 0.01 * torch.randn(shape, generator=generator, dtype=torch.float64)]
     terms = step_terms(list(scene.terms), scene.vertex_mass, scene.dt, start, 0 * start, scene.free)
@@ -382,6 +382,6 @@ def test_a_user_density_declared_constant_is_assembled_once_and_still_exact():
     size, width = computed[0].shape[1], computed[0].shape[2]
     read = torch.arange(size)[:, None] + torch.arange(width) < size  # the slots LAPACK reads
     for bands, dense in zip(computed, expected, strict=True):
-        reference = dense.reshape(BATCH_LAST_MIN_BATCH, -1)[:, layout.band_entries]
+        reference = dense.reshape(BATCH, -1)[:, layout.band_entries]
         tolerance = 1e-9 * float(dense.abs().max())
         assert torch.allclose(bands[:, read], reference[:, read], rtol=0, atol=tolerance)

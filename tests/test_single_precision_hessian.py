@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import small_box
+from conftest import lay_out_per_element, small_box
 
 import energysim as es
 from energysim.contact.obstacles import Ground
 from energysim.creatures import load_creature, resting_state
 from energysim.integrators.adjoint import step_terms
 from energysim.linalg.linear_solve import level_layout_of
-from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH
 from energysim.objective.objective import Objective
 
 # 1 km along the ground: float32 spaces positions there 6e-5 m apart, so the worm's neo-Hookean
@@ -69,11 +68,15 @@ def test_the_terms_declared_translation_invariant_are():
     assert declared == 5  # neo-Hookean, fibre muscles, lagged viscosity, both springs
 
 
-@pytest.mark.parametrize("batch", [4, BATCH_LAST_MIN_BATCH])
-def test_the_float32_band_hessian_keeps_float32_precision_a_kilometre_away(batch: int):
-    # element-major below `BATCH_LAST_MIN_BATCH`, batch-last from it; the worms' Hessians entry by
+@pytest.mark.parametrize(("batch", "batch_last"), [(4, False), (4, True), (8, True)])
+def test_the_float32_band_hessian_keeps_float32_precision_a_kilometre_away(
+    batch: int, batch_last: bool, monkeypatch
+):
+    # per element (a GPU's layout of small batches) and batch-last; the worms' Hessians entry by
     # entry against the float64 ones, to a few float32 roundings of the largest entry (measured
     # 1.1e-7 and 1.7e-7)
+    if not batch_last:
+        lay_out_per_element(monkeypatch)
     objective, x = _worm_objective(batch, shift=FAR)
     layout = level_layout_of(objective.element_groups(), x)
     double = objective.band_hessian(x, layout)

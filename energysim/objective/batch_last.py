@@ -23,9 +23,19 @@ from energysim.contact.projection import project_contacts
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
 from energysim.objective.derivatives import element_groups
 
-# Batches from this size on take the batch-last layout where every element term has
-# `batch_last_forces`: with fewer entries its vectors would run mostly empty.
-BATCH_LAST_MIN_BATCH = 8
+# Compiled batches from this size on take the batch-last layout where every element term has
+# `batch_last_forces`. On the CPU every size does: even one body's compiled evaluations ran faster
+# batch-last than per element (docs/envs.md); tests raise it there to cover the per-element
+# layout. Elsewhere a batch of fewer would run its vectors mostly empty.
+BATCH_LAST_MIN_BATCH = {"cpu": 1}
+OTHER_DEVICES_BATCH_LAST_MIN_BATCH = 8
+
+
+def takes_batch_last(batch: int, device: torch.device) -> bool:
+    """Whether a compiled batch of `batch` bodies on `device` is laid out batch-last
+    (`BATCH_LAST_MIN_BATCH`), read at each call, so that changing the module's table changes every
+    caller."""
+    return batch >= BATCH_LAST_MIN_BATCH.get(device.type, OTHER_DEVICES_BATCH_LAST_MIN_BATCH)
 
 
 class BatchLastPlan(NamedTuple):
@@ -156,10 +166,11 @@ def _finish_batch_last(
 
 def evaluates_batch_last(terms: Sequence[EnergyTerm], x: Tensor) -> tuple[int, ...]:
     """The indices of the element terms whose energy and gradient `energysim.objective.evaluation`
-    takes batch-last (`element_energy_and_gradient`): those with a gradient kernel, while a batch of
-    `BATCH_LAST_MIN_BATCH` or more is compiled for the CPU; none otherwise (eagerly the entry-wise
+    takes batch-last (`element_energy_and_gradient`): those with a gradient kernel, while a CPU batch
+    laid out batch-last (`takes_batch_last`) is compiled; none otherwise (eagerly the entry-wise
     kernels are hundreds of small operations, and a GPU keeps the per-element layout)."""
-    if not (torch.compiler.is_compiling() and x.device.type == "cpu" and x.shape[0] >= BATCH_LAST_MIN_BATCH):
+    cpu = x.device.type == "cpu"
+    if not (torch.compiler.is_compiling() and cpu and takes_batch_last(x.shape[0], x.device)):
         return ()
     return tuple(
         index

@@ -41,11 +41,11 @@ from energysim.compile_settings import package_compile_settings
 from energysim.contact.projection import project_contacts
 from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
 from energysim.objective import batch_last, evaluation
-from energysim.objective.batch_last import BATCH_LAST_MIN_BATCH, BatchLastPlan, batch_last_plan
+from energysim.objective.batch_last import BatchLastPlan, batch_last_plan, takes_batch_last
 from energysim.objective.evaluation import step_limit
 
 __all__ = [
-    "BATCH_LAST_MIN_BATCH",
+    "HOST_CODE_MIN_BATCH",
     "LEAPFROG_CHUNK",
     "batch_last_plan",
     "call",
@@ -211,12 +211,13 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
         )
     },
 }
-# On the CPU a batch of `BATCH_LAST_MIN_BATCH` or more bodies (an RL env's, whose calls repeat for
+# On the CPU a batch of `HOST_CODE_MIN_BATCH` or more bodies (an RL env's, whose calls repeat for
 # hours) gets C++ host code (Inductor's `cpp_wrapper`): the default Python wrapper allocates, aliases
 # and checks each of a call's intermediate buffers in Python, some 150 lines a call for the worm's band
 # Hessian (what it saves is in docs/envs.md). It compiles more slowly, so smaller batches (a script's
 # single body, most tests) keep the Python wrapper.
 _HOST_CODE: dict[str, dict[str, object]] = {"cpu": {"cpp_wrapper": True}}
+HOST_CODE_MIN_BATCH = 8
 _COMPILED: dict[tuple[str, str, bool], Callable] = {}
 _FAILED: set[str] = set()
 
@@ -236,7 +237,7 @@ def call(name: str, *args: object, batch: int = 1) -> object | None:
     """The compiled function `name` applied to `args`, for a batch of `batch` bodies, or None where it
     could not be compiled (a warning says why, once per function); the caller then evaluates eagerly."""
     device = next((arg.device.type for arg in args if isinstance(arg, Tensor)), "cpu")
-    function = _compiled(name, device, batch >= BATCH_LAST_MIN_BATCH and device in _HOST_CODE)
+    function = _compiled(name, device, batch >= HOST_CODE_MIN_BATCH and device in _HOST_CODE)
     if function is None:
         return None
     try:
@@ -320,15 +321,15 @@ def leapfrog(
 ) -> tuple[Tensor, Tensor] | None:
     """`energysim.integrators.explicit.leapfrog` over the force `terms`, with `obstacles` projecting the
     velocities (`project_contacts`), by compiled calls of unrolled substeps (`inverse_mass` `[n]`
-    zero on pinned vertices), or None. Batches of `BATCH_LAST_MIN_BATCH` or more run batch-last
-    (`batch_last_plan`) where the terms allow it."""
+    zero on pinned vertices), or None. CPU batches run batch-last (`batch_last_plan`) where the terms
+    allow it (`takes_batch_last`)."""
     if not _EXPLICIT:
         from energysim.integrators.explicit import leapfrog as explicit_leapfrog  # noqa: PLC0415
 
         _EXPLICIT["leapfrog"] = explicit_leapfrog
     step = torch.tensor(h, dtype=x.dtype, device=x.device)  # a tensor: a new h is no new graph
     batch = x.shape[0]
-    plan = batch_last_plan(terms) if batch >= BATCH_LAST_MIN_BATCH else None
+    plan = batch_last_plan(terms) if takes_batch_last(batch, x.device) else None
     if plan is not None:
         return _leapfrog_batch_last(plan, obstacles, action, free, inverse_mass, x, v, step, substeps)
     done = 0

@@ -38,7 +38,8 @@ from energysim.linalg.level_storage import (
     level_positions,
     padding_identity,
 )
-from energysim.objective.compiled import BATCH_LAST_MIN_BATCH, call
+from energysim.objective.batch_last import takes_batch_last
+from energysim.objective.compiled import call
 from energysim.objective.derivatives import element_groups
 
 __all__ = ["band_hessian", "dense_hessian", "level_hessian"]
@@ -205,8 +206,8 @@ def band_hessian(
     single: bool = False,
 ) -> Tensor | None:
     """∇²E(x) in `layout`'s band storage, `[B, N, u + 1]` (`energysim.linalg.banded`), fixed DOFs
-    eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`. From
-    `BATCH_LAST_MIN_BATCH` entries on it is a transposed view of batch-last memory.
+    eliminated, by the compiled function, or None. `constant`: as for `dense_hessian`. Where the batch
+    is laid out batch-last (`takes_batch_last`), a transposed view of batch-last memory.
 
     `single`: the storage in float32, for a float32 factorisation. The translation-invariant terms
     (`EnergyTerm.is_translation_invariant`) are evaluated in float32 at positions relative to each
@@ -216,7 +217,7 @@ def band_hessian(
     diagonal = band_diagonal_positions(layout)
     length = band_length(layout)
     key = ("band", id(layout), x.shape[1:], x.dtype, x.device, single)
-    if batch >= BATCH_LAST_MIN_BATCH:
+    if takes_batch_last(batch, x.device):
         # batch-last: every element kernel one loop vectorised over the batch, half the entries
         positions = functools.partial(band_upper_positions, layout, dim=dim)
         name = "hessian_entries_batch_last"
