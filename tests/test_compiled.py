@@ -47,14 +47,19 @@ BATCH = compiled.HOST_CODE_MIN_BATCH
 LAYOUTS = [(2, False), (2, True), (BATCH, True)]
 
 
-@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
-def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(
-    batch: int, batch_last: bool, monkeypatch
-):
-    # a batch laid out batch-last (with the body's viscosity) evaluates its element terms batch-last
-    # (`batch_last_energy_and_forces`)
+@pytest.fixture(params=LAYOUTS, ids=lambda case: f"{case[0]}-{'batch-last' if case[1] else 'per-element'}")
+def batch_layout(request, monkeypatch) -> tuple[int, bool]:
+    """(batch, laid out batch-last) of `LAYOUTS`, the layout in force for the test."""
+    batch, batch_last = request.param
     if not batch_last:
         lay_out_per_element(monkeypatch)
+    return batch, batch_last
+
+
+def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(batch_layout: tuple[int, bool]):
+    # a batch laid out batch-last (with the body's viscosity) evaluates its element terms batch-last
+    # (`batch_last_energy_and_forces`)
+    batch, batch_last = batch_layout
     _, objective, x = _worm_objective(batch=batch, viscosity=batch_last)
     assert any(isinstance(term, LaggedFriction) for term in objective.terms)  # every kind of term
     energy, gradient = objective.energy_and_gradient(x)
@@ -71,13 +76,11 @@ def test_compiled_energy_gradient_and_dense_hessian_equal_the_eager_ones(
     assert torch.allclose(compiled_dense, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
-@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
 def test_the_compiled_line_trial_equals_the_eager_one_and_refuses_an_inadmissible_start(
-    batch: int, batch_last: bool, monkeypatch
+    batch_layout: tuple[int, bool]
 ):
     # the first trial of a line search: CCD-limited step, energy, gradient, slopes and residual
-    if not batch_last:
-        lay_out_per_element(monkeypatch)
+    batch, batch_last = batch_layout
     _, objective, x = _worm_objective(batch=batch, viscosity=batch_last)
     x = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)  # the probe's noise put some vertices below
     energy, gradient = objective.energy_and_gradient(x)
@@ -198,15 +201,13 @@ def _without_corner(bands: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("pinned", [False, True])
-@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
 def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(
-    pinned: bool, batch: int, batch_last: bool, monkeypatch
+    pinned: bool, batch_layout: tuple[int, bool]
 ):
     # assembled straight into band storage: the muscle and elastic blocks of the same elements are
     # summed before their scatter, so are the barrier's and friction's; fixed DOFs are eliminated.
     # Batch-last, from the batch-last entries (`energysim.fem.hessian_entries`)
-    if not batch_last:
-        lay_out_per_element(monkeypatch)
+    batch, batch_last = batch_layout
     scene, objective, x = _pinned_worm_objective(pinned, batch, viscosity=batch_last)
     layout = level_layout_of(objective.element_groups(), x)
     dense = objective.hessian(x).dense(x)
@@ -229,15 +230,11 @@ def test_the_compiled_band_hessian_equals_the_dense_one_in_band_storage(
         assert torch.allclose(_without_corner(bands), expected, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
-@pytest.mark.parametrize(("batch", "batch_last"), LAYOUTS)
-def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(
-    batch: int, batch_last: bool, monkeypatch
-):
+def test_the_constant_hessian_part_is_assembled_once_and_serves_every_later_x(batch_layout: tuple[int, bool]):
     # the inertia and the lagged viscosity (`has_constant_hessian`) are assembled at the first call
     # and kept; later calls at other positions add the other terms to a copy: each result equals
     # the eager Hessian at its own x, in band and in dense storage
-    if not batch_last:
-        lay_out_per_element(monkeypatch)
+    batch, batch_last = batch_layout
     _, objective, x = _worm_objective(batch=batch, viscosity=True)
     assert {type(term).__name__ for term in objective.terms if term.has_constant_hessian} == {
         "Inertia",
