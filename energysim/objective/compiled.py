@@ -3,14 +3,15 @@
 A small body's Newton iteration is hundreds of tiny tensor operations, and in eager PyTorch on a
 CPU their dispatch costs more than their arithmetic: the 360-tet worm's energy and gradient take
 2,000 operations a call. Compiled, the element kernels of all terms fuse into a few loops. Seven
-functions are compiled, each over the objective's whole list of terms: the energy, the energy with
-its gradient, a run of explicit leapfrog substeps (`energysim.integrators.explicit`), every term's energy
-apart (TR-BDF2's energy check), a line search's first trial (the CCD step limit, then the energy,
-gradient, slopes and residual where it lands), the warm start's candidates cut back to
-admissible steps with their energies, and the Hessian of a small system, its element blocks
-scattered straight into the storage a direct solve factorises, no CSR in between
-(`energysim.objective.compiled_hessian` says where each entry goes: dense, band or level blocks;
-a batch's band storage is filled batch-last, `energysim.objective.batch_last`).
+functions are compiled, each over the objective's list of terms (or the part of it that it reads):
+the energy, the energy with its gradient, a run of explicit leapfrog substeps
+(`energysim.integrators.explicit`), every term's energy apart (TR-BDF2's energy check), a line
+search's first trial (the CCD step limit, then the energy, gradient, slopes and residual where it
+lands), the warm start's candidates cut back to admissible steps (their energies then by the
+energy's function), and the Hessian of a small system, its element blocks scattered straight into
+the storage a direct solve factorises, no CSR in between (`energysim.objective.compiled_hessian`
+says where each entry goes: dense, band or level blocks; a batch's band storage is filled
+batch-last, `energysim.objective.batch_last`).
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
 kicks and Hessian of `energysim.objective.batch_last`; only the element-major Hessian's scatter into
@@ -39,7 +40,13 @@ from torch import Tensor
 
 from energysim.compile_settings import package_compile_settings
 from energysim.contact.projection import project_contacts
-from energysim.energies.base import ElementEnergy, EnergyTerm, has_vertex_diagonal, is_dissipative
+from energysim.energies.base import (
+    ElementEnergy,
+    EnergyTerm,
+    has_vertex_diagonal,
+    is_dissipative,
+    limits_steps,
+)
 from energysim.objective import batch_last, evaluation
 from energysim.objective.batch_last import BatchLastPlan, batch_last_plan, takes_batch_last
 from energysim.objective.evaluation import step_limit
@@ -164,7 +171,7 @@ _SOURCES: dict[str, Callable] = {
     "constant_hessian_entries": _constant_hessian_entries,
     "constant_hessian_entries_batch_last": _constant_hessian_entries_batch_last,
     "trial": evaluation.trial,
-    "cut_back": evaluation.cut_back,
+    "cut_targets": evaluation.cut_targets,
     "leapfrog": _leapfrog,
     "kick_batch_last": batch_last.kick_batch_last,
     "viscous_kick_batch_last": batch_last.viscous_kick_batch_last,
@@ -207,7 +214,7 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
             "hessian_entries",
             "constant_hessian_entries",
             "trial",
-            "cut_back",
+            "cut_targets",
         )
     },
 }
@@ -299,8 +306,23 @@ def cut_back(
     targets: Sequence[Tensor],
 ) -> tuple[Tensor, Tensor, Tensor] | None:
     """`Objective.cut_back`'s cuts and energies, and the step limits (NaN where `origin` is not
-    admissible), by one compiled function, or None."""
-    return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets), batch=origin.shape[0])
+    admissible), by compiled calls, or None: the cuts in one (`evaluation.cut_targets`), then each
+    energy by the energy's function, as `evaluation.cut_back` composes them. The four energies of a
+    warm start in one compiled function fused into loops that took longer than four calls of the
+    energy's (docs/envs.md)."""
+    # only the terms that limit steps: every term passed adds guards to the call
+    limiting = tuple(term for term in terms if limits_steps(term))
+    cut = call("cut_targets", limiting, origin, tuple(targets), batch=origin.shape[0])
+    if cut is None:
+        return None
+    cuts, limits = cut
+    energies = []
+    for point in (origin, *cuts.unbind(0)):
+        value = energy(terms, anchor, action, point)
+        if value is None:
+            return None
+        energies.append(value)
+    return cuts, torch.stack(energies), limits
 
 
 # Leapfrog substeps per compiled call: unrolled into one generated loop nest, so the call's

@@ -115,6 +115,20 @@ def trial(
     return limit, trial_x, energy, trial_gradient, slope, trial_slope, residual, hints, verdict
 
 
+def cut_targets(
+    terms: Sequence[EnergyTerm], origin: Tensor, targets: Sequence[Tensor]
+) -> tuple[Tensor, Tensor]:
+    """Each target moved back towards `origin` to its unchecked step limit, `[k, B, n, d]`, and the
+    limits, `[k, B]`."""
+    cuts, limits = [], []
+    for target in targets:
+        motion = target - origin
+        limit = step_limit(terms, origin, motion)
+        cuts.append(origin + limit[:, None, None] * motion)
+        limits.append(limit)
+    return torch.stack(cuts), torch.stack(limits)
+
+
 def cut_back(
     terms: Sequence[EnergyTerm],
     anchor: Tensor | None,
@@ -123,13 +137,7 @@ def cut_back(
     targets: Sequence[Tensor],
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Each target moved back towards `origin` to its unchecked step limit, `[k, B, n, d]`; E at
-    `origin` and at every cut, `[k + 1, B]`; and the limits, `[k, B]`."""
-    energies, cuts, limits = [total_energy(terms, anchor, action, origin)], [], []
-    for target in targets:
-        motion = target - origin
-        limit = step_limit(terms, origin, motion)
-        cuts.append(origin + limit[:, None, None] * motion)
-        energies.append(total_energy(terms, anchor, action, cuts[-1]))
-        limits.append(limit)
-    return torch.stack(cuts), torch.stack(energies), torch.stack(limits)
-
+    `origin` and at every cut, `[k + 1, B]`; and the limits, `[k, B]` (`cut_targets`)."""
+    cuts, limits = cut_targets(terms, origin, targets)
+    energies = [total_energy(terms, anchor, action, point) for point in (origin, *cuts.unbind(0))]
+    return cuts, torch.stack(energies), limits
