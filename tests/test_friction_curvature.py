@@ -204,3 +204,52 @@ def test_a_tumbling_drop_with_friction_ends_where_the_exact_blocks_end_it_in_few
     # each step is solved to 1e-6 m/s: the ends differ by the solves' errors, carried over 60 steps
     assert float((hinted_end - exact_end).abs().max()) < 1e-6
     assert hinted < exact
+
+
+def test_a_row_that_backtracks_alone_gets_the_hint_of_where_its_search_ended():
+    # four entries of one vertex, slipping +3ε from x_n. Entries 1–3 step to the inertia's anchor at
+    # −2ε and take the step (their slip reversed and still slides: marked). Entry 0's direction is
+    # 1000ε long; its anchor at +2.9ε, on the side it started from, is where its search must come back
+    # to: it backtracks alone, and its mark is that of where it stopped (not reversed), not that of
+    # the trial it refused (reversed far beyond ε). The compiled trial gives the others' marks
+    from energysim.solvers.line_search import line_step
+
+    batch, dt = 4, 0.01
+    anchor = torch.zeros(batch, 1, 3, dtype=torch.float64)
+    anchor[0, 0, 0], anchor[1:, 0, 0] = 2.9 * SMOOTHING, -2.0 * SMOOTHING
+    weights = torch.full((batch, 1), 0.1, dtype=torch.float64)  # μλ, in N: the inertia dominates
+
+    def objective_of(rows: torch.Tensor) -> Objective:
+        inertia = Inertia(torch.tensor([1.0], dtype=torch.float64), dt, anchor[rows])
+        friction = LaggedFriction(
+            torch.tensor([[0]]),
+            torch.zeros(len(rows), 1, 3, dtype=torch.float64),
+            torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand(len(rows), 1, 3),
+            weights[rows],
+            torch.tensor(1.0, dtype=torch.float64),
+            SMOOTHING,
+        )
+        objective = Objective([inertia, friction], torch.tensor([True]), torch.tensor([dt]))
+        objective.compiled = True
+        return objective
+
+    restricted = []
+
+    def restrict(rows: torch.Tensor) -> Objective:
+        restricted.append(rows.tolist())
+        return objective_of(rows)
+
+    objective = objective_of(torch.arange(batch))
+    x = torch.zeros(batch, 1, 3, dtype=torch.float64)
+    x[:, 0, 0] = 3.0 * SMOOTHING
+    direction = torch.zeros_like(x)
+    direction[0, 0, 0], direction[1:, 0, 0] = -1000.0 * SMOOTHING, -5.0 * SMOOTHING
+    energy, gradient = objective.energy_and_gradient(x)
+    result = line_step(objective, x, energy, gradient, direction, restrict=restrict)
+    assert restricted == [[0]]
+    assert 0 < float(result.step[0]) < 1e-3 and result.step[1:].tolist() == [1.0, 1.0, 1.0]
+    friction = objective.terms[1]
+    assert result.hints is not None
+    (hint,) = result.hints
+    assert torch.equal(hint, friction.curvature_hint(x, result.x))
+    assert hint.tolist() == [[False], [True], [True], [True]]

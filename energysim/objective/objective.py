@@ -139,11 +139,16 @@ class Objective:
         hints for it, in their order, where the caller has them (`LineTrial.hints`, of a line search
         that ended at its first trial); else they are computed here, eagerly: a few small
         operations, which a compiled call of their own would cost more than (docs/contact.md)."""
-        hinting = [term for term in self.terms if term.has_curvature_hint]
         if hints is None:
-            hints = [term.curvature_hint(previous, current) for term in hinting]
+            hints = self.curvature_hints(previous, current)
+        hinting = [term for term in self.terms if term.has_curvature_hint]
         for term, hint in zip(hinting, hints, strict=True):
             term.set_curvature_hint(hint)
+
+    def curvature_hints(self, previous: Tensor, current: Tensor) -> tuple[Tensor, ...]:
+        """The curvature hints of one Newton iteration from `previous` to `current` (`[B, n, d]`) of
+        every term that declares them, in the terms' order (`EnergyTerm.curvature_hint`), eagerly."""
+        return tuple(term.curvature_hint(previous, current) for term in self.terms if term.has_curvature_hint)
 
     def residual(self, gradient: Tensor) -> Tensor:
         """‖h M⁻¹ ∇E‖∞ over free DOFs, shape `[B]`, in m/s."""

@@ -38,8 +38,9 @@ class LineStep:
             measured it or was given it; NaN for entries it was not measured for, None where it
             was measured for none. A solver passes it to its next searches (`line_step`'s
             `noise`), which then measure only the entries still without one.
-        hints: the curvature hints of the iteration from the search's start to `x` (`LineTrial.hints`)
-            where every entry took the first trial and the trial gave them; None otherwise.
+        hints: the curvature hints of the iteration from the search's start to `x` where the trial gave
+            them (`LineTrial.hints`) and every entry took it, or those that refused it backtracked on
+            an objective of their own (`restrict`; their hints from it, eagerly); None otherwise.
     """
 
     step: Tensor
@@ -263,12 +264,17 @@ def line_step(
         else:
             moved = x[refusing] + steps[:, None, None] * direction[refusing]
             moved_energy, moved_gradient = part.energy_and_gradient(moved)
+        if hints is not None:
+            # the trial's hints stand for the rows that took it; the others' iteration ended elsewhere
+            own = part.curvature_hints(x[refusing], moved)
+            hints = tuple(hint.index_copy(0, refusing, mine) for hint, mine in zip(hints, own, strict=True))
         step = initial.index_copy(0, refusing, steps)
         x_new = trial_x.index_copy(0, refusing, moved)
         new_energy = trial_energy.index_copy(0, refusing, moved_energy)
         new_gradient = trial_gradient.index_copy(0, refusing, moved_gradient)
         unjudged = -slope * initial <= rounding
     else:
+        hints = None
         step, _, unjudged = backtracking_line_search(
             objective,
             x,
@@ -284,7 +290,7 @@ def line_step(
         x_new = x + step[:, None, None] * direction
         new_energy, new_gradient = objective.energy_and_gradient(x_new)
     found = (new_energy, new_gradient, objective.residual(new_gradient))
-    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0])
+    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0], hints)
 
 
 def backtracking_line_search(
