@@ -118,8 +118,20 @@ def _judge(step, slope, trial_energy, trial_slope, energy):
     return (trial_energy - energy,)
 
 
-def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly():
-    # the warm start's choice: each candidate cut back towards x_n to the CCD-safe fraction, with E
+@pytest.mark.parametrize("split", [False, True])
+def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly(split, monkeypatch):
+    # the warm start's choice: each candidate cut back towards x_n to the CCD-safe fraction, with E;
+    # compiled in one call, or (`split`, a large batch's way) the cuts in one and each energy apart
+    called = []
+    original_call = compiled.call
+
+    def recorded(name, *arguments, **keywords):  # noqa: ANN001, ANN002, ANN003, ANN202
+        called.append(name)
+        return original_call(name, *arguments, **keywords)
+
+    monkeypatch.setattr(compiled, "call", recorded)
+    if split:
+        monkeypatch.setattr(compiled, "CUT_BACK_SPLIT_MIN_ROWS", 1)
     _, objective, x = _worm_objective(batch=2)
     origin = x + torch.tensor([0.0, 1e-3, 0.0], dtype=x.dtype)
     lowest = origin[..., 1].amin(dim=-1)
@@ -133,6 +145,7 @@ def test_cut_back_candidates_stop_short_of_the_ground_compiled_as_eagerly():
         assert torch.allclose(energy, objective.energy(position), rtol=1e-12, atol=0)
     objective.compiled = True
     fast_cuts, fast_energies = objective.cut_back(origin, [down, up])
+    assert called == (["cut_targets"] + ["energy"] * 3 if split else ["cut_back"])
     assert torch.allclose(fast_cuts, cuts, rtol=0, atol=1e-15)
     assert torch.allclose(fast_energies, energies, rtol=1e-10, atol=0)
     inside = origin.clone()

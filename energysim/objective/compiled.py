@@ -7,11 +7,11 @@ functions are compiled, each over the objective's list of terms (or the part of 
 the energy, the energy with its gradient, a run of explicit leapfrog substeps
 (`energysim.integrators.explicit`), every term's energy apart (TR-BDF2's energy check), a line
 search's first trial (the CCD step limit, then the energy, gradient, slopes and residual where it
-lands), the warm start's candidates cut back to admissible steps (their energies then by the
-energy's function), and the Hessian of a small system, its element blocks scattered straight into
-the storage a direct solve factorises, no CSR in between (`energysim.objective.compiled_hessian`
-says where each entry goes: dense, band or level blocks; a batch's band storage is filled
-batch-last, `energysim.objective.batch_last`).
+lands), the warm start's candidates cut back to admissible steps with their energies (a large
+CPU batch: the cuts, then each energy by the energy's function), and the Hessian of a small system,
+its element blocks scattered straight into the storage a direct solve factorises, no CSR in between
+(`energysim.objective.compiled_hessian` says where each entry goes: dense, band or level blocks; a
+batch's band storage is filled batch-last, `energysim.objective.batch_last`).
 The compiled functions are the eager ones, compiled: the evaluations of
 `energysim.objective.evaluation`, the leapfrog of `energysim.integrators.explicit` and the batch-last
 kicks and Hessian of `energysim.objective.batch_last`; only the element-major Hessian's scatter into
@@ -52,6 +52,7 @@ from energysim.objective.batch_last import BatchLastPlan, batch_last_plan, takes
 from energysim.objective.evaluation import step_limit
 
 __all__ = [
+    "CUT_BACK_SPLIT_MIN_ROWS",
     "HOST_CODE_MIN_BATCH",
     "LEAPFROG_CHUNK",
     "batch_last_plan",
@@ -171,6 +172,7 @@ _SOURCES: dict[str, Callable] = {
     "constant_hessian_entries": _constant_hessian_entries,
     "constant_hessian_entries_batch_last": _constant_hessian_entries_batch_last,
     "trial": evaluation.trial,
+    "cut_back": evaluation.cut_back,
     "cut_targets": evaluation.cut_targets,
     "leapfrog": _leapfrog,
     "kick_batch_last": batch_last.kick_batch_last,
@@ -214,7 +216,7 @@ _OPTIONS: dict[str, dict[str, dict[str, object]]] = {
             "hessian_entries",
             "constant_hessian_entries",
             "trial",
-            "cut_targets",
+            "cut_back",
         )
     },
 }
@@ -298,6 +300,16 @@ def trial(
     return call("trial", *arguments, judge, judged_with, batch=x.shape[0])
 
 
+# A CPU batch whose element rows (bodies × elements of its largest element term) reach this takes
+# the warm start's cut-back as several calls: the cuts in one, each energy in one of its own. In
+# one compiled function Inductor fuses the four energies' loops, which is the faster form while
+# their intermediates stay in the caches and falls off a cliff beyond (this machine, one thread,
+# warm caches: 64 worms of 360 tets 2.7–3.2 ms in one call, 1.98 ms in five; 32 worms 0.95 against
+# 1.14 ms; 32 quadrupeds of 888 tets 3.5 against 2.3 ms, 16 of them 1.13 against 1.29 ms). On a
+# GPU the one call stays (unmeasured there: fewer launches).
+CUT_BACK_SPLIT_MIN_ROWS = 16_384
+
+
 def cut_back(
     terms: Sequence[EnergyTerm],
     anchor: Tensor | None,
@@ -306,13 +318,17 @@ def cut_back(
     targets: Sequence[Tensor],
 ) -> tuple[Tensor, Tensor, Tensor] | None:
     """`Objective.cut_back`'s cuts and energies, and the step limits (NaN where `origin` is not
-    admissible), by compiled calls, or None: the cuts in one (`evaluation.cut_targets`), then each
-    energy by the energy's function, as `evaluation.cut_back` composes them. The four energies of a
-    warm start in one compiled function fused into loops that took longer than four calls of the
-    energy's (docs/envs.md)."""
+    admissible), by compiled calls, or None: `evaluation.cut_back` in one, or for a large CPU batch
+    (`CUT_BACK_SPLIT_MIN_ROWS`) the two functions it composes apart, the cuts in one call
+    (`evaluation.cut_targets`) and each energy by the energy's function."""
+    batch = origin.shape[0]
+    sizes = [term.element_vertices.shape[0] for term in terms if isinstance(term, ElementEnergy)]
+    elements = max(sizes, default=0)
+    if origin.device.type != "cpu" or batch * elements < CUT_BACK_SPLIT_MIN_ROWS:
+        return call("cut_back", tuple(terms), anchor, action, origin, tuple(targets), batch=batch)
     # only the terms that limit steps: every term passed adds guards to the call
     limiting = tuple(term for term in terms if limits_steps(term))
-    cut = call("cut_targets", limiting, origin, tuple(targets), batch=origin.shape[0])
+    cut = call("cut_targets", limiting, origin, tuple(targets), batch=batch)
     if cut is None:
         return None
     cuts, limits = cut
