@@ -136,9 +136,10 @@ class Objective:
     ) -> None:
         """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
         adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). `hints`: those terms'
-        hints for it, in their order, where the caller has them (`LineTrial.hints`, of a line search
-        that ended at its first trial); else they are computed here, eagerly: a few small
-        operations, which a compiled call of their own would cost more than (docs/contact.md)."""
+        hints for it, in their order, where the caller has them (`LineStep.hints`: from the line
+        search's compiled trial, and for rows that backtracked alone, from their own objective); else
+        they are computed here, eagerly: a few small operations, which a compiled call of their own
+        would cost more than (docs/contact.md)."""
         if hints is None:
             hints = self.curvature_hints(previous, current)
         hinting = [term for term in self.terms if term.has_curvature_hint]
