@@ -18,16 +18,10 @@ kicks and Hessian of `energysim.objective.batch_last`; only the element-major He
 its storage is written here. The tests compare them to the eager paths to 1e-9 relative, and a 0.2 s
 worm walk to 1e-10 m with the same iterations.
 
-Measured with `python scripts/bench_creatures.py` without and with `--compile` (mean ms per step
-over a 5 s walk): the worm 42.5 → 11.8, the 2D crawler 22.1 → 8.5 and the 2D walker 25.6 → 10.2
-(all three faster than real time). Bodies over 600 DOFs take the band direct solve only compiled
-(`NewtonCG.direct_limit`): the quadruped (888 tets) 150.6 → 46.0 against the eager CG path. The
-first call per scene pays the compilation (about 15 s for the worm, a few seconds when torch's
-on-disk cache already holds it); a new scene, step size or batch size
-compiles again, and a batch that drops its converged entries meets several sizes (six worms: about
-a minute the first time). It pays off for long runs of one scene: walking, training. Where compiling
-fails (no C++ compiler, an unsupported operation), a warning says so once and the eager paths take
-over.
+The first call per scene pays the compilation; a new scene, step size or batch size compiles again,
+and a batch that drops its converged entries meets several sizes. It pays off for long runs of one
+scene, walking and training (docs/solvers.md has the timings). Where compiling fails (no C++
+compiler, an unsupported operation), a warning says so once and the eager paths take over.
 """
 
 from __future__ import annotations
@@ -300,13 +294,10 @@ def trial(
     return call("trial", *arguments, judge, judged_with, batch=x.shape[0])
 
 
-# A CPU batch whose element rows (bodies × elements of its largest element term) reach this takes
-# the warm start's cut-back as several calls: the cuts in one, each energy in one of its own. In
-# one compiled function Inductor fuses the four energies' loops, which is the faster form while
-# their intermediates stay in the caches and falls off a cliff beyond (this machine, one thread,
-# warm caches: 64 worms of 360 tets 2.7–3.2 ms in one call, 1.98 ms in five; 32 worms 0.95 against
-# 1.14 ms; 32 quadrupeds of 888 tets 3.5 against 2.3 ms, 16 of them 1.13 against 1.29 ms). On a
-# GPU the one call stays (unmeasured there: fewer launches).
+# From this many element rows (bodies × elements of the largest element term) a CPU batch's
+# cut-back runs as the cuts' call and one energy call per point: the four energies fused in one
+# function outgrow the caches there and are the faster form below it (timings in docs/envs.md).
+# A GPU keeps the one call (fewer launches; not measured there).
 CUT_BACK_SPLIT_MIN_ROWS = 16_384
 
 
@@ -332,12 +323,9 @@ def cut_back(
     if cut is None:
         return None
     cuts, limits = cut
-    energies = []
-    for point in (origin, *cuts.unbind(0)):
-        value = energy(terms, anchor, action, point)
-        if value is None:
-            return None
-        energies.append(value)
+    energies = [energy(terms, anchor, action, point) for point in (origin, *cuts.unbind(0))]
+    if any(value is None for value in energies):
+        return None
     return cuts, torch.stack(energies), limits
 
 
