@@ -347,8 +347,8 @@ def leapfrog(
 ) -> tuple[Tensor, Tensor] | None:
     """`energysim.integrators.explicit.leapfrog` over the force `terms`, with `obstacles` projecting the
     velocities (`project_contacts`), by compiled calls of unrolled substeps (`inverse_mass` `[n]`
-    zero on pinned vertices), or None. CPU batches run batch-last (`batch_last_plan`) where the terms
-    allow it (`takes_batch_last`)."""
+    zero on pinned vertices), or None. Batches laid out batch-last (`takes_batch_last`: every CPU
+    batch, eight bodies or more elsewhere) run so (`batch_last_plan`) where the terms allow it."""
     if not _EXPLICIT:
         from energysim.integrators.explicit import leapfrog as explicit_leapfrog  # noqa: PLC0415
 
