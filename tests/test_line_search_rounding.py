@@ -191,7 +191,7 @@ def test_one_solve_measures_the_noise_once_and_still_converges(monkeypatch: pyte
 def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> None:
     # a bowl E = 2‖x‖² from x = 1: entries 1–3 take the exact Newton step (d = −1, t = 1); entry 0's
     # direction is 100× too long, and its search must come down to t = 0.01. Given `restrict`,
-    # entry 0 backtracks alone, on an objective of its row; the result is the same, the minimum at 0
+    # entry 0 searches again alone, on an objective of its row; the result is the same, the minimum at 0
     from energysim.objective.objective import Objective
     from energysim.solvers.line_search import line_step
 
@@ -221,6 +221,35 @@ def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> Non
     assert float(alone.x.abs().max()) < 1e-12 and float(alone.energy.abs().max()) < 1e-20
 
 
+def test_a_refusing_entry_whose_interpolated_step_holds_costs_its_row_one_evaluation() -> None:
+    # the bowl E = 2‖x‖² from x = 1 along d = −4 (entry 0) and −1 (entry 1): entry 0 refuses t = 1
+    # (x = −3, E = 18 > 2), and the quadratic through E(0) = 2, φ'(0) = −16 and E(1) = 18 has its
+    # minimum at t = 0.25, inside the safeguard's [0.1, 0.5]: on a quadratic the interpolation is
+    # exact. Its row's search is one trial there, energy and gradient in one evaluation, and lands
+    # on the minimum x = 0
+    from energysim.objective.objective import Objective
+    from energysim.solvers.line_search import line_step
+
+    def bowl() -> Objective:
+        return Objective([_Bowl()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
+
+    x = torch.ones(2, 1, 1, dtype=torch.float64)
+    direction = -torch.tensor([4.0, 1.0], dtype=torch.float64)[:, None, None] * torch.ones_like(x)
+    parts = []
+
+    def restrict(rows: torch.Tensor) -> Objective:
+        parts.append(bowl())
+        return parts[-1]
+
+    objective = bowl()
+    energy, gradient = objective.energy_and_gradient(x)
+    result = line_step(objective, x, energy, gradient, direction, restrict=restrict)
+    assert len(parts) == 1 and parts[0].grad_evals == 1 and parts[0].energy_evals == 0
+    assert result.step.tolist() == pytest.approx([0.25, 1.0], rel=1e-12)
+    assert float(result.x.abs().max()) < 1e-12 and float(result.gradient.abs().max()) < 1e-11
+    assert result.residual.tolist() == pytest.approx(result.gradient.abs().reshape(2).tolist(), abs=0)
+
+
 class _Quartic(es.EnergyTerm):
     """E = ‖x‖⁴, in J (∇E = 4‖x‖²x): a backtracking search on it ends away from the minimum."""
 
@@ -228,10 +257,10 @@ class _Quartic(es.EnergyTerm):
         return (x * x).sum(dim=(-1, -2)) ** 2
 
 
-def test_an_entry_backtracking_alone_gets_the_gradient_where_it_stops_without_another_call() -> None:
-    # from x = 1 along d = −37 the search refuses t = 1 (x = −36) and t = 0.1 (x = −2.7) and accepts
-    # t ≈ 0.011 (x ≈ 0.59, E ≈ 0.12 < 1). The gradient it returns is ∇E = 4x³ there, taken in the
-    # same call as the accepted energy: the objective of the row evaluates twice, not three times
+def test_an_entry_searching_alone_twice_refused_gets_the_gradient_where_it_stops() -> None:
+    # from x = 1 along d = −37 the search refuses t = 1 (x = −36); the row's own search refuses its
+    # first trial t = 0.1 (x = −2.7, evaluated with its gradient) and backtracks on the energy alone to
+    # t ≈ 0.011 (x ≈ 0.59, E ≈ 0.12 < 1). The gradient it returns is ∇E = 4x³ there
     from energysim.objective.objective import Objective
     from energysim.solvers.line_search import line_step
 
@@ -254,7 +283,7 @@ def test_an_entry_backtracking_alone_gets_the_gradient_where_it_stops_without_an
     assert 0.0 < float(result.energy[0]) < float(energy[0])
     assert torch.allclose(result.gradient, 4.0 * result.x**3, rtol=1e-14, atol=0)
     assert torch.allclose(result.energy, result.x.reshape(-1) ** 4, rtol=1e-14, atol=0)
-    assert len(parts) == 1 and parts[0].grad_evals == 2 and parts[0].energy_evals == 0
+    assert len(parts) == 1 and parts[0].grad_evals == 2 and parts[0].energy_evals == 1
 
 
 class _RaisedBowl(es.EnergyTerm):

@@ -39,8 +39,8 @@ class LineStep:
             was measured for none. A solver passes it to its next searches (`line_step`'s
             `noise`), which then measure only the entries still without one.
         hints: the curvature hints of the iteration from the search's start to `x` where the trial gave
-            them (`LineTrial.hints`) and every entry took it, or those that refused it backtracked on
-            an objective of their own (`restrict`; their hints from it, eagerly); None otherwise.
+            them (`LineTrial.hints`) and every entry took it, or those that refused it searched again
+            on an objective of their own (`restrict`; their hints from that search); None otherwise.
     """
 
     step: Tensor
@@ -159,15 +159,17 @@ def line_step(
     that minimiser too: in float32, steps twice the way to the minimum pass on the allowance, leave
     E where it was, and stall Newton far above its tolerance. A step neither can judge is taken
     whole and flagged `unjudged`. Where some entry still refuses its trial, the search backtracks
-    (`backtracking_line_search`) and evaluates the gradient where it stopped (alone, with each trial's
-    energy: where every row accepts, the last trial is where they stop, and needs no call of its own).
+    (`backtracking_line_search`) and evaluates the gradient where it stopped.
 
     `restrict`: builds the objective of some of the batch's rows alone (their indices `[k]`). Where
-    it is given and at most half of the entries refuse their trial, only those backtrack, on their
-    own objective; the others keep their trial's energy and gradient. The noise is then measured
-    for the entries whose trial it may decide alone, too. Without it every backtracking energy, the
-    final gradient and the noise are evaluated on the whole batch: on 64 randomly driven worms, one
-    or two refusing entries made that a fifth of a step.
+    it is given and at most half of the entries refuse their trial, only those search again, on their
+    own objective; the others keep their trial's energy and gradient. Their search is this one,
+    along the direction shortened to the step that the quadratic through E(0), φ'(0) and E(t) puts
+    forward (`_interpolated_step`): its first trial is that step, evaluated with the gradient, the
+    curvature hints and the verdict in one call, and where it is refused too, it backtracks on those
+    rows. The noise is then measured for the entries whose trial it may decide alone, too. Without
+    `restrict` every backtracking energy, the final gradient and the noise are evaluated on the whole
+    batch: on 64 randomly driven worms, one or two refusing entries made that a fifth of a step.
 
     `noise`: the allowance for the noise of E (`LineStep.noise`) that an earlier search of the same
     solve measured, used instead of measuring again. The noise is that of the energy's terms at
@@ -239,58 +241,57 @@ def line_step(
     refusing = torch.nonzero(~(unjudged | decrease)).reshape(-1)
     part = restrict(refusing) if alone(refusing) else None
     if part is not None:
-        evaluated: list[tuple[Tensor, Tensor, Tensor]] = []
-
-        def energy_with_gradient(points: Tensor) -> Tensor:
-            values, gradients = part.energy_and_gradient(points)
-            evaluated[:] = [(points, values, gradients)]
-            return values
-
-        steps, _, _ = backtracking_line_search(
+        # the refusing rows search again on their own objective, from the step that the quadratic
+        # through E(0), φ'(0) and E(t) puts forward: one trial (energy, gradient, hints and verdict in
+        # one call where the objective compiles) along the direction scaled to that step, which
+        # lies within the admissible segment, so that its first trial is the step itself
+        shorter = _interpolated_step(
+            initial[refusing], energy[refusing], trial_energy[refusing], slope[refusing]
+        )
+        known = measured_noise[0]
+        own = line_step(
             part,
             x[refusing],
             energy[refusing],
             gradient[refusing],
-            direction[refusing],
-            initial[refusing],
+            shorter[:, None, None] * direction[refusing],
             sufficient_decrease=sufficient_decrease,
-            rounding=rounding[refusing],
-            initial_energy=trial_energy[refusing],
-            initial_refused=True,
-            evaluate=energy_with_gradient,
+            noise=None if known is None else known[refusing],
         )
-        if evaluated and bool((steps > 0).all()):
-            moved, moved_energy, moved_gradient = evaluated[0]
-        else:
-            moved = x[refusing] + steps[:, None, None] * direction[refusing]
-            moved_energy, moved_gradient = part.energy_and_gradient(moved)
+        if own.noise is not None:
+            known = torch.full_like(energy, torch.nan) if known is None else known
+            measured_noise[0] = known.index_copy(0, refusing, own.noise)
         if hints is not None:
             # the trial's hints stand for the rows that took it; the others' iteration ended elsewhere
-            own = part.curvature_hints(x[refusing], moved)
-            hints = tuple(hint.index_copy(0, refusing, mine) for hint, mine in zip(hints, own, strict=True))
-        step = initial.index_copy(0, refusing, steps)
-        x_new = trial_x.index_copy(0, refusing, moved)
-        new_energy = trial_energy.index_copy(0, refusing, moved_energy)
-        new_gradient = trial_gradient.index_copy(0, refusing, moved_gradient)
-        unjudged = -slope * initial <= rounding
-    else:
-        hints = None
-        step, _, unjudged = backtracking_line_search(
-            objective,
-            x,
-            energy,
-            gradient,
-            direction,
-            initial,
-            sufficient_decrease=sufficient_decrease,
-            rounding=rounding,
-            initial_energy=trial_energy,
-            initial_refused=~decrease,
+            mine = own.hints if own.hints is not None else part.curvature_hints(x[refusing], own.x)
+            hints = tuple(hint.index_copy(0, refusing, row) for hint, row in zip(hints, mine, strict=True))
+        return LineStep(
+            initial.index_copy(0, refusing, shorter * own.step),
+            trial_x.index_copy(0, refusing, own.x),
+            trial_energy.index_copy(0, refusing, own.energy),
+            trial_gradient.index_copy(0, refusing, own.gradient),
+            trial_residual.index_copy(0, refusing, own.residual),
+            (unjudged & ~judged).index_copy(0, refusing, own.unjudged),
+            rounding.index_copy(0, refusing, own.allowance),
+            measured_noise[0],
+            hints,
         )
-        x_new = x + step[:, None, None] * direction
-        new_energy, new_gradient = objective.energy_and_gradient(x_new)
+    step, _, unjudged = backtracking_line_search(
+        objective,
+        x,
+        energy,
+        gradient,
+        direction,
+        initial,
+        sufficient_decrease=sufficient_decrease,
+        rounding=rounding,
+        initial_energy=trial_energy,
+        initial_refused=~decrease,
+    )
+    x_new = x + step[:, None, None] * direction
+    new_energy, new_gradient = objective.energy_and_gradient(x_new)
     found = (new_energy, new_gradient, objective.residual(new_gradient))
-    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0], hints)
+    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0], None)
 
 
 def backtracking_line_search(
@@ -306,7 +307,6 @@ def backtracking_line_search(
     rounding: Tensor | None = None,
     initial_energy: Tensor | None = None,
     initial_refused: Tensor | bool = False,
-    evaluate: Callable[[Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Armijo backtracking, per batch entry, from the largest admissible step.
 
@@ -329,8 +329,6 @@ def backtracking_line_search(
         initial_energy: E at `initial_step` `[B]`, if the caller has evaluated it already.
         initial_refused: entries `[B]` (or all, True) whose first trial the caller has refused
             already, on a test this energy-only search cannot make (`line_step`'s derivatives).
-        evaluate: E at positions `[B, n, d]` in place of `objective.energy`, for every trial of the
-            loop; each evaluates every entry at its current step, accepted ones included.
 
     Returns:
         step fractions `[B]` (0 where no step was accepted), the energies there `[B]`, and which
@@ -347,7 +345,7 @@ def backtracking_line_search(
     refused = torch.as_tensor(initial_refused, device=x.device) & ~unjudged
     for _ in range(max_halvings):
         if trial is None:
-            trial = (evaluate or objective.energy)(x + step[:, None, None] * direction)
+            trial = objective.energy(x + step[:, None, None] * direction)
         ok = _sufficient_decrease(energy, trial, step, slope, rounding, sufficient_decrease)
         ok, refused = ok & ~accepted & ~refused, torch.zeros_like(accepted)
         new_energy = torch.where(ok, trial, new_energy)
