@@ -221,29 +221,38 @@ def test_only_the_refusing_entries_backtrack_and_on_their_own_objective() -> Non
     assert float(alone.x.abs().max()) < 1e-12 and float(alone.energy.abs().max()) < 1e-20
 
 
+def _searched_with_rows_alone(
+    term: type[es.EnergyTerm], x: torch.Tensor, direction: torch.Tensor
+) -> tuple[torch.Tensor, object, list]:
+    """`line_step` from `x` along `direction` on the objective of one `term`, given `restrict`: E at
+    `x`, the search's result and the objectives of rows it built (the term has no data per entry,
+    so the objective of some rows is a fresh one of the same term)."""
+    from energysim.objective.objective import Objective
+    from energysim.solvers.line_search import line_step
+
+    def objective_of() -> Objective:
+        return Objective([term()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
+
+    parts = []
+
+    def restrict(rows: torch.Tensor) -> Objective:
+        parts.append(objective_of())
+        return parts[-1]
+
+    objective = objective_of()
+    energy, gradient = objective.energy_and_gradient(x)
+    return energy, line_step(objective, x, energy, gradient, direction, restrict=restrict), parts
+
+
 def test_a_refusing_entry_whose_interpolated_step_holds_costs_its_row_one_evaluation() -> None:
     # the bowl E = 2‖x‖² from x = 1 along d = −4 (entry 0) and −1 (entry 1): entry 0 refuses t = 1
     # (x = −3, E = 18 > 2), and the quadratic through E(0) = 2, φ'(0) = −16 and E(1) = 18 has its
     # minimum at t = 0.25, inside the safeguard's [0.1, 0.5]: on a quadratic the interpolation is
     # exact. Its row's search is one trial there, energy and gradient in one evaluation, and lands
     # on the minimum x = 0
-    from energysim.objective.objective import Objective
-    from energysim.solvers.line_search import line_step
-
-    def bowl() -> Objective:
-        return Objective([_Bowl()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
-
     x = torch.ones(2, 1, 1, dtype=torch.float64)
     direction = -torch.tensor([4.0, 1.0], dtype=torch.float64)[:, None, None] * torch.ones_like(x)
-    parts = []
-
-    def restrict(rows: torch.Tensor) -> Objective:
-        parts.append(bowl())
-        return parts[-1]
-
-    objective = bowl()
-    energy, gradient = objective.energy_and_gradient(x)
-    result = line_step(objective, x, energy, gradient, direction, restrict=restrict)
+    _, result, parts = _searched_with_rows_alone(_Bowl, x, direction)
     assert len(parts) == 1 and parts[0].grad_evals == 1 and parts[0].energy_evals == 0
     assert result.step.tolist() == pytest.approx([0.25, 1.0], rel=1e-12)
     assert float(result.x.abs().max()) < 1e-12 and float(result.gradient.abs().max()) < 1e-11
@@ -261,23 +270,9 @@ def test_an_entry_searching_alone_twice_refused_gets_the_gradient_where_it_stops
     # from x = 1 along d = −37 the search refuses t = 1 (x = −36); the row's own search refuses its
     # first trial t = 0.1 (x = −2.7, evaluated with its gradient) and backtracks on the energy alone to
     # t ≈ 0.011 (x ≈ 0.59, E ≈ 0.12 < 1). The gradient it returns is ∇E = 4x³ there
-    from energysim.objective.objective import Objective
-    from energysim.solvers.line_search import line_step
-
-    def quartic() -> Objective:
-        return Objective([_Quartic()], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.float64))
-
     x = torch.ones(3, 1, 1, dtype=torch.float64)
     direction = -torch.ones_like(x) * torch.tensor([37.0, 0.2, 0.2], dtype=torch.float64)[:, None, None]
-    parts = []
-
-    def restrict(rows: torch.Tensor) -> Objective:
-        parts.append(quartic())
-        return parts[-1]
-
-    objective = quartic()
-    energy, gradient = objective.energy_and_gradient(x)
-    result = line_step(objective, x, energy, gradient, direction, restrict=restrict)
+    energy, result, parts = _searched_with_rows_alone(_Quartic, x, direction)
     assert 0.01 <= float(result.step[0]) <= 0.05 and result.step[1:].tolist() == [1.0, 1.0]
     assert float(result.x[0]) == pytest.approx(1.0 - 37.0 * float(result.step[0]), rel=1e-14)
     assert 0.0 < float(result.energy[0]) < float(energy[0])
