@@ -137,7 +137,7 @@ class Objective:
         """Show one Newton iteration, from `previous` to `current` (`[B, n, d]`), to the terms that
         adapt their next Hessian blocks to it (`EnergyTerm.curvature_hint`). `hints`: those terms'
         hints for it, in their order, where the caller has them (`LineStep.hints`: from the line
-        search's compiled trial, and for rows that backtracked alone, from their own objective); else
+        search's compiled trial, and for rows that searched again alone, from their own search); else
         they are computed here, eagerly: a few small operations, which a compiled call of their own
         would cost more than (docs/contact.md)."""
         if hints is None:

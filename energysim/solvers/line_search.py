@@ -291,7 +291,7 @@ def line_step(
     x_new = x + step[:, None, None] * direction
     new_energy, new_gradient = objective.energy_and_gradient(x_new)
     found = (new_energy, new_gradient, objective.residual(new_gradient))
-    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0], None)
+    return LineStep(step, x_new, *found, unjudged & ~judged, rounding, measured_noise[0])
 
 
 def backtracking_line_search(
